@@ -1,0 +1,423 @@
+"""Quasi-static total-Lagrangian FEA of a keyed grid mesh in dolfinx 0.5: residual stress release + body force.
+
+Read top to bottom as physics: mesh (gmsh -> dolfinx, keys kept), spaces (Q2 displacement), kinematics,
+energy Pi(u; t) = int W(F) + t S0 : E dV - t int b . u dV with only the terms the scene turns on, the
+fixed face, then Newton (PETSc SNES, MUMPS) over adaptive pseudo-time increments that land exactly on the
+frame times. Units: mm, N, MPa, s.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fea_factory.design import Design
+from fea_factory.material import ReducedPolynomial
+from fea_factory.mesh import KeyedMesh, add_to_gmsh
+from fea_factory.residual_stress import initial_stress
+from fea_factory.scene import Scene
+
+log = logging.getLogger(__name__)
+VOIGT = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))  # xx, yy, zz, xy, xz, yz
+
+
+@dataclass(frozen=True)
+class SolverSettings:
+    """conf/solver/*.yaml"""
+
+    increments: int = 100
+    save_every: int = 10
+    adaptive: bool = True
+    max_cutbacks: int = 8
+    grow: float = 2.0
+    easy_iterations: int = 4
+    degree: int = 2
+    quadrature_degree: int = 4
+    stress_quadrature_degree: int = 3
+    max_it: int = 15
+    force_tol: float = 1e-8
+    line_search: str = "basic"
+    linear_solver: str = "direct"
+
+    def __post_init__(self) -> None:
+        checks = [
+            ("increments", self.increments >= 1, ">= 1"),
+            ("save_every", 1 <= self.save_every <= self.increments and self.increments % self.save_every == 0,
+             "in [1, increments] and dividing increments"),
+            ("max_cutbacks", 0 <= self.max_cutbacks <= 20, "in [0, 20]"),
+            ("grow", 1.0 <= self.grow <= 4.0, "in [1, 4]"),
+            ("degree", self.degree in (1, 2), "1 or 2"),
+            ("quadrature_degree", 1 <= self.quadrature_degree <= 8, "in [1, 8]"),
+            ("newton.max_it", 1 <= self.max_it <= 200, "in [1, 200]"),
+            ("newton.force_tol", 0 < self.force_tol < 1e-2, "in (0, 1e-2)"),
+            ("newton.line_search", self.line_search in ("basic", "bt", "l2", "cp"), "basic | bt | l2 | cp"),
+            ("linear_solver", self.linear_solver in ("direct", "iterative"), "direct | iterative"),
+        ]
+        for name, ok, allowed in checks:
+            if not ok:
+                raise ValueError(f"solver.{name} = {getattr(self, name.split('.')[-1], '?')}: must be {allowed}")
+
+    @classmethod
+    def from_mapping(cls, m) -> "SolverSettings":
+        flat = {k: m[k] for k in cls.__dataclass_fields__ if k in m}
+        newton = m.get("newton", {}) or {}
+        flat.update({k: newton[k] for k in ("max_it", "force_tol", "line_search") if k in newton})
+        return cls(**flat)
+
+    @property
+    def frame_times(self) -> np.ndarray:
+        n = self.increments // self.save_every
+        return np.linspace(0.0, 1.0, n + 1)
+
+
+@dataclass
+class Frames:
+    """Saved frames in key order (rank 0 only): t [F], node_xyz [F, N, 3] mm, stress [F, C, Q, 6] MPa."""
+
+    t: list = field(default_factory=list)
+    node_xyz: list = field(default_factory=list)
+    stress: list = field(default_factory=list)
+    quad_points: np.ndarray | None = None  # [Q, 3] reference hex coordinates (i, j, k directions)
+    quad_weights: np.ndarray | None = None
+
+
+class SolveFailure(RuntimeError):
+    """A diverged episode: reported, never saved as data."""
+
+    def __init__(self, reason: str, t: float, dt: float, increment: int, history: list):
+        super().__init__(f"{reason} at t = {t:.5g} (dt = {dt:.3g}, increment {increment})")
+        self.info = {"reason": reason, "t": t, "dt": dt, "increment": increment, "residual_history": history}
+
+
+SNES_REASONS = {-1: "function domain error", -2: "function count", -3: "linear solve failed",
+                -4: "residual is NaN/Inf", -5: "max Newton iterations", -6: "line search failed",
+                -7: "inner solve", -8: "local minimum", -9: "DIVERGED_DTOL", -10: "Jacobian domain",
+                -11: "trust region"}
+
+
+# ------------------------------------------------------------------------------------------ physics
+def kinematics(u):
+    import ufl
+
+    I = ufl.Identity(3)
+    F = ufl.variable(I + ufl.grad(u))
+    E = 0.5 * (F.T * F - I)
+    return F, E
+
+
+def total_energy(material: ReducedPolynomial, u, S0, b, t, scene: Scene, dx):
+    """Pi(u; t): stored energy, released residual stress, body force work; only the scene's terms."""
+    import ufl
+
+    F, E = kinematics(u)
+    Pi = material.strain_energy(F) * dx
+    if scene.residual_stress:
+        Pi += t * ufl.inner(S0, E) * dx
+    if scene.gravity:
+        Pi -= t * ufl.dot(b, u) * dx
+    return Pi
+
+
+def cauchy_stress(material: ReducedPolynomial, u, S0, t, scene: Scene):
+    """sigma = J^-1 P F^T with P = dW/dF (+ t F S0 from the initial stress)."""
+    import ufl
+
+    F, _ = kinematics(u)
+    P = ufl.diff(material.strain_energy(F), F)
+    if scene.residual_stress:
+        P = P + t * F * S0
+    return P * F.T / ufl.det(F)
+
+
+# ------------------------------------------------------------------------------------------ solver
+class GridSolver:
+    """One episode: build once, then `run()` steps t from 0 to 1 and returns the frames (rank 0)."""
+
+    def __init__(self, design: Design, mesh: KeyedMesh, material: ReducedPolynomial, scene: Scene,
+                 S0_cells: np.ndarray, body_force: np.ndarray, settings: SolverSettings, comm):
+        self.design, self.keyed, self.material, self.scene, self.settings, self.comm = (
+            design, mesh, material, scene, settings, comm)
+        self.stats = {"wall_mesh_s": 0.0, "wall_jit_s": 0.0, "wall_solve_s": 0.0, "wall_output_s": 0.0,
+                      "increment_t": [], "newton_iterations": [], "cutbacks": 0, "linear_solves": 0}
+        t0 = time.perf_counter()
+        self._build_mesh()
+        self.stats["wall_mesh_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        self._build_forms(S0_cells, body_force)
+        self.stats["wall_jit_s"] = time.perf_counter() - t0
+
+    # mesh: gmsh model on rank 0, distributed by dolfinx; keys recovered from input node indices
+    def _build_mesh(self) -> None:
+        import gmsh
+        from dolfinx.io import gmshio
+
+        gmsh.initialize()
+        try:
+            gmsh.option.setNumber("General.Terminal", 0)
+            if self.comm.rank == 0:
+                add_to_gmsh(self.keyed)
+            self.msh, _, _ = gmshio.model_to_mesh(gmsh.model, self.comm, 0, gdim=3)
+        finally:
+            gmsh.finalize()
+        msh = self.msh
+        self.n_local_cells = msh.topology.index_map(3).size_local
+        self.node_ids = np.asarray(msh.geometry.input_global_indices, dtype=np.int64)  # local geom node -> id
+        geo = msh.geometry.dofmap.array.reshape(-1, 8)[: self.n_local_cells]
+        lookup = {tuple(r): c for c, r in enumerate(np.sort(self.keyed.cell_nodes, axis=1).tolist())}
+        self.cell_ids = np.array([lookup[tuple(r)] for r in np.sort(self.node_ids[geo], axis=1).tolist()],
+                                 dtype=np.int64)
+        self.geo_dofs = geo
+
+    def _build_forms(self, S0_cells: np.ndarray, body_force: np.ndarray) -> None:
+        import basix
+        import ufl
+        from dolfinx import fem
+        from petsc4py import PETSc
+
+        msh, s = self.msh, self.settings
+        # spaces
+        self.V = fem.VectorFunctionSpace(msh, ("Lagrange", s.degree))
+        T0 = fem.TensorFunctionSpace(msh, ("DG", 0))
+        self.u = fem.Function(self.V, name="displacement")
+        self.S0 = fem.Function(T0, name="initial_stress")
+        dofs = T0.dofmap.list.array.reshape(-1)[: self.n_local_cells]
+        S0_local = self.S0.x.array.reshape(-1, 9)
+        S0_local[dofs] = S0_cells[self.cell_ids].reshape(-1, 9)
+        self.S0.x.scatter_forward()
+        self.t = fem.Constant(msh, PETSc.ScalarType(0.0))
+        self.b = fem.Constant(msh, np.asarray(body_force, dtype=PETSc.ScalarType))
+        dx = ufl.Measure("dx", domain=msh, metadata={"quadrature_degree": s.quadrature_degree})
+        # energy, residual, tangent
+        Pi = total_energy(self.material, self.u, self.S0, self.b, self.t, self.scene, dx)
+        R = ufl.derivative(Pi, self.u, ufl.TestFunction(self.V))
+        K = ufl.derivative(R, self.u, ufl.TrialFunction(self.V))
+        self.R_form, self.K_form = fem.form(R), fem.form(K)
+        self.bcs = [self._fixed_face_bc()]
+        # outputs: Cauchy stress at Gauss points, node values through a Q1 space
+        qp, qw = basix.make_quadrature(basix.CellType.hexahedron, s.stress_quadrature_degree)
+        self.quad_points, self.quad_weights = np.asarray(qp), np.asarray(qw)
+        sig = cauchy_stress(self.material, self.u, self.S0, self.t, self.scene)
+        self.stress_expr = fem.Expression(ufl.as_vector([sig[i, j] for i, j in VOIGT]), self.quad_points)
+        self.V1 = fem.VectorFunctionSpace(msh, ("Lagrange", 1))
+        self.u1 = fem.Function(self.V1)
+
+    def _fixed_face_bc(self):
+        """Clamp the top face (z = thickness) of the fixed joint: its facets, found by their node keys."""
+        from dolfinx import fem, mesh as dmesh
+
+        msh, keyed, d = self.msh, self.keyed, self.design
+        nh = keyed.preset.nodes_height
+        top = np.zeros(keyed.n_nodes, dtype=bool)
+        top[keyed.joint_nodes[d.fixed_joint, :, :, nh - 1].reshape(-1)] = True
+        msh.topology.create_connectivity(2, 0)
+        msh.topology.create_connectivity(2, 3)
+        # vertex -> geometry node: positional within each cell (first-order geometry)
+        c2v = msh.topology.connectivity(3, 0).array.reshape(-1, 8)[: self.n_local_cells]
+        vertex_node = np.full(msh.topology.index_map(0).size_local + msh.topology.index_map(0).num_ghosts, -1)
+        vertex_node[c2v.reshape(-1)] = self.node_ids[self.geo_dofs.reshape(-1)]
+        f2v = msh.topology.connectivity(2, 0)
+        boundary = dmesh.exterior_facet_indices(msh.topology)
+        on_top = [f for f in boundary if np.all(top[vertex_node[f2v.links(f)]])]
+        dofs = fem.locate_dofs_topological(self.V, 2, np.asarray(on_top, dtype=np.int32))
+        n_fixed = self.comm.allreduce(len(on_top))
+        expected = (keyed.preset.nodes_width - 1) ** 2
+        if n_fixed != expected:
+            raise RuntimeError(f"fixed face of joint {d.fixed_joint}: found {n_fixed} facets, expected {expected}")
+        return fem.dirichletbc(np.zeros(3), dofs, self.V)
+
+    # ---------------------------------------------------------------------------------- Newton
+    def _make_snes(self):
+        from dolfinx.fem.petsc import create_matrix, create_vector
+        from petsc4py import PETSc
+
+        s = self.settings
+        self.A = create_matrix(self.K_form)
+        self.r = create_vector(self.R_form)
+        snes = PETSc.SNES().create(self.comm)
+        snes.setType("newtonls")
+        snes.setFunction(self._residual, self.r)
+        snes.setJacobian(self._tangent, self.A)
+        prefix = f"morphsim_{id(self)}_"
+        opts = PETSc.Options()
+        opts[f"{prefix}snes_linesearch_type"] = s.line_search
+        snes.setOptionsPrefix(prefix)
+        snes.setFromOptions()
+        ksp = snes.getKSP()
+        if s.linear_solver == "direct":
+            ksp.setType("preonly")
+            ksp.getPC().setType("lu")
+            ksp.getPC().setFactorSolverType("mumps")
+        else:
+            ksp.setType("cg")
+            ksp.getPC().setType("gamg")
+            ksp.setTolerances(rtol=1e-10, max_it=2000)
+            self.A.setNearNullSpace(self._rigid_body_modes())
+        snes.setConvergenceHistory(length=s.max_it + 1, reset=True)
+        self.snes = snes
+
+    def _rigid_body_modes(self):
+        from dolfinx import la
+        from petsc4py import PETSc
+
+        imap, bs = self.V.dofmap.index_map, self.V.dofmap.index_map_bs
+        x = self.V.tabulate_dof_coordinates()[: imap.size_local]
+        modes = [la.create_petsc_vector(imap, bs) for _ in range(6)]
+        arrays = [m.array.reshape(-1, 3) for m in modes]
+        for k in range(3):
+            arrays[k][:, k] = 1.0
+        arrays[3][:, 0], arrays[3][:, 1] = -x[:, 1], x[:, 0]
+        arrays[4][:, 0], arrays[4][:, 2] = x[:, 2], -x[:, 0]
+        arrays[5][:, 2], arrays[5][:, 1] = x[:, 1], -x[:, 2]
+        for i, m in enumerate(modes):  # Gram-Schmidt
+            for prev in modes[:i]:
+                m.axpy(-m.dot(prev), prev)
+            m.normalize()
+        return PETSc.NullSpace().create(vectors=modes, comm=self.comm)
+
+    def _residual(self, snes, x, r) -> None:
+        from dolfinx.fem.petsc import apply_lifting, assemble_vector, set_bc
+        from petsc4py import PETSc
+
+        x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+        x.copy(self.u.vector)
+        self.u.vector.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+        with r.localForm() as r_local:
+            r_local.set(0.0)
+        assemble_vector(r, self.R_form)
+        apply_lifting(r, [self.K_form], bcs=[self.bcs], x0=[x], scale=-1.0)
+        r.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        set_bc(r, self.bcs, x, -1.0)
+
+    def _tangent(self, snes, x, A, P) -> None:
+        from dolfinx.fem.petsc import assemble_matrix
+
+        A.zeroEntries()
+        assemble_matrix(A, self.K_form, bcs=self.bcs)
+        A.assemble()
+        self.stats["linear_solves"] += 1
+
+    def load_norm(self) -> float:
+        """||R(u = 0, t = 1)||: the full out-of-balance load, the scale of the force tolerance."""
+        t_old = self.t.value.copy()
+        saved = self.u.vector.copy()
+        self.u.vector.set(0.0)
+        self.t.value = 1.0
+        self._residual(None, self.u.vector, self.r)
+        norm = self.r.norm()
+        self.t.value = t_old
+        saved.copy(self.u.vector)
+        return float(norm)
+
+    # ---------------------------------------------------------------------------------- outputs
+    def _gather_frame(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Node positions [N, 3] and Cauchy stress [C, Q, 6] in key order on rank 0 (None elsewhere)."""
+        self.u1.interpolate(self.u)
+        n_owned = self.msh.geometry.index_map().size_local
+        v1 = self.V1.dofmap.list.array.reshape(-1, 8)[: self.n_local_cells]
+        disp = np.zeros((len(self.node_ids), 3))
+        disp[self.geo_dofs.reshape(-1)] = self.u1.x.array.reshape(-1, 3)[v1.reshape(-1)]
+        ids, disp = self.node_ids[:n_owned], disp[:n_owned]
+        stress = self.stress_expr.eval(np.arange(self.n_local_cells, dtype=np.int32))
+        stress = stress.reshape(self.n_local_cells, len(self.quad_points), 6)
+        parts = self.comm.gather((ids, disp, self.cell_ids, stress), root=0)
+        if self.comm.rank != 0:
+            return None
+        keyed = self.keyed
+        xyz = keyed.node_xyz.copy()
+        sig = np.full((keyed.n_cells, len(self.quad_points), 6), np.nan)
+        seen_nodes = np.zeros(keyed.n_nodes, dtype=bool)
+        for node_id, d, cell_id, s in parts:
+            xyz[node_id] += d
+            seen_nodes[node_id] = True
+            sig[cell_id] = s
+        if not seen_nodes.all() or np.isnan(sig).any():
+            raise RuntimeError("frame gather missed nodes or cells: key mapping is broken")
+        return xyz, sig
+
+    # ---------------------------------------------------------------------------------- stepping
+    def run(self, progress=None) -> Frames:
+        """Step t from 0 to 1, landing on every frame time; raise SolveFailure on divergence."""
+        from petsc4py import PETSc
+
+        s = self.settings
+        t_start = time.perf_counter()
+        self._make_snes()
+        f_ref = self.load_norm()
+        atol = s.force_tol * max(f_ref, 1e-300)
+        self.snes.setTolerances(atol=atol, rtol=0.0, stol=0.0, max_it=s.max_it)
+        self.stats["load_norm_N"] = f_ref
+        frames = Frames(quad_points=self.quad_points, quad_weights=self.quad_weights)
+        self._save(frames, 0.0)
+        dt_nominal = 1.0 / s.increments
+        dt_max = s.save_every * dt_nominal if s.adaptive else dt_nominal
+        dt = dt_max
+        t_now, increment = 0.0, 0
+        u_prev = self.u.vector.copy()  # for the linear predictor
+        dt_prev = None
+        x_backup = self.u.vector.copy()
+        next_frames = list(s.frame_times[1:])
+        while next_frames:
+            target = next_frames[0]
+            dt = min(dt, target - t_now)
+            cut = 0
+            while True:
+                self.u.vector.copy(x_backup)
+                if dt_prev:  # extrapolate along the load path: u + dt/dt_prev (u - u_prev)
+                    self.u.vector.axpy(dt / dt_prev, x_backup - u_prev)
+                self.t.value = t_now + dt
+                self.snes.solve(None, self.u.vector)
+                reason = self.snes.getConvergedReason()
+                its = self.snes.getIterationNumber()
+                finite = np.isfinite(self.u.vector.norm())
+                if reason > 0 and finite:
+                    break
+                history = [float(v) for v in self.snes.getConvergenceHistory()[0][: its + 1]]
+                why = SNES_REASONS.get(reason, f"SNES reason {reason}") if finite else "non-finite displacement"
+                cut += 1
+                self.stats["cutbacks"] += 1
+                if cut > s.max_cutbacks or not s.adaptive:
+                    self.stats["wall_solve_s"] = time.perf_counter() - t_start
+                    raise SolveFailure(why, t_now + dt, dt, increment, history)
+                log.info("increment at t=%.4g failed (%s); cutting dt %.3g -> %.3g", t_now + dt, why, dt, dt / 2)
+                self.snes.getKSP().reset()
+                dt /= 2
+            increment += 1
+            x_backup.copy(u_prev)
+            self.u.vector.copy(x_backup)
+            dt_prev = dt
+            t_now = t_now + dt
+            self.stats["increment_t"].append(t_now)
+            self.stats["newton_iterations"].append(its)
+            if abs(t_now - target) < 1e-12:
+                t_now = target
+                next_frames.pop(0)
+                self._save(frames, target)
+                if progress:
+                    progress(target)
+            if s.adaptive and its <= s.easy_iterations and cut == 0:
+                dt = min(dt * s.grow, dt_max)
+            elif not s.adaptive:
+                dt = dt_nominal
+        self.stats["wall_solve_s"] = time.perf_counter() - t_start - self.stats["wall_output_s"]
+        self.stats["increments"] = increment
+        self.stats["newton_total"] = int(sum(self.stats["newton_iterations"]))
+        return frames
+
+    def _save(self, frames: Frames, t: float) -> None:
+        t0 = time.perf_counter()
+        out = self._gather_frame()
+        if out is not None:
+            xyz, sig = out
+            if not (np.isfinite(xyz).all() and np.isfinite(sig).all()):
+                raise SolveFailure("non-finite output", t, 0.0, len(self.stats["increment_t"]), [])
+            frames.t.append(float(t))
+            frames.node_xyz.append(xyz)
+            frames.stress.append(sig)
+        self.stats["wall_output_s"] += time.perf_counter() - t0
+
+
+def prestress_for(mesh: KeyedMesh, design: Design, sigma: float, joint_model: str) -> np.ndarray:
+    """S0 per cell [C, 3, 3] in key order."""
+    return initial_stress(mesh.cell_print_angle, mesh.cell_block < design.n_joints, sigma, joint_model)
