@@ -190,6 +190,9 @@ def _validate_topology(d: Design) -> None:
                 f"beam {b}: joins joint {a} at lattice {d.joint_ij[a].tolist()} and joint {c} at lattice "
                 f"{d.joint_ij[c].tolist()}, which are not grid neighbours: beams must run along the two grid "
                 "directions (lattice step of exactly 1 in i or j)")
+        if np.linalg.norm(d.joint_xy[c] - d.joint_xy[a]) < 1e-9:  # the beam axis (geometry) would be 0/0
+            raise DesignError(f"beam {b}: joints {a} and {c} are both at {d.joint_xy[a].tolist()}; "
+                              "a beam needs two distinct joint positions")
         degree[a] += 1
         degree[c] += 1
     for n in range(d.n_joints):
