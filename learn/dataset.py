@@ -1,0 +1,104 @@
+"""Episodes on disk -> features, a split by episode, rotation augmentation, and graph sets for batched training."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from data_schema.episode import read_episode
+from learn.features import EpisodeFeatures, extract
+from learn.graph import GraphIndex, disjoint_union
+from learn.model import Static
+from learn.symmetry import rotation_angles, rotation_z
+
+SPLITS = ("train", "val", "test")
+
+
+def episode_paths(data_dir: str | Path) -> list[Path]:
+    paths = sorted(Path(data_dir).glob("*.h5"))
+    if not paths:
+        raise FileNotFoundError(f"no episodes (*.h5) in {data_dir}; generate them with `make dataset`")
+    return paths
+
+
+def load_features(paths: list[Path]) -> list[EpisodeFeatures]:
+    return [extract(read_episode(p), name=p.name) for p in paths]
+
+
+def split_names(features: list[EpisodeFeatures], fractions: dict, seed: int) -> dict[str, list[str]]:
+    """Split by episode (never by frame or rotation), shuffled within each design family so that every family
+    (random, regular, ...) reaches every split in proportion. Every split with a positive fraction gets >= 1
+    episode when there are enough."""
+    rng = np.random.default_rng(seed)
+    out: dict[str, list[str]] = {s: [] for s in SPLITS}
+    fr = np.array([float(fractions[s]) for s in SPLITS])
+    fr = fr / fr.sum()
+    by_family: dict[str, list[str]] = {}
+    for f in features:
+        by_family.setdefault(f.family, []).append(f.name)
+    for family in sorted(by_family):
+        names = sorted(by_family[family])
+        names = [names[i] for i in rng.permutation(len(names))]
+        n_val = int(round(fr[1] * len(names)))
+        n_test = int(round(fr[2] * len(names)))
+        out["val"] += names[:n_val]
+        out["test"] += names[n_val:n_val + n_test]
+        out["train"] += names[n_val + n_test:]
+    for s in ("val", "test"):  # a positive fraction never leaves a split empty
+        if fr[SPLITS.index(s)] > 0 and not out[s] and len(out["train"]) > 1:
+            out[s].append(out["train"].pop())
+    return out
+
+
+def augment(features: list[EpisodeFeatures], rotations: int, seed: int) -> list[EpisodeFeatures]:
+    """Each episode rotated about z (through the fixed joint) by `rotations` angles spread over a full turn,
+    with a random offset per episode; rotations <= 1 keeps the episodes as they are."""
+    if rotations <= 1:
+        return list(features)
+    rng = np.random.default_rng(seed)
+    return [f.rotated(rotation_z(a)) for f in features for a in rotation_angles(rotations, rng)]
+
+
+@dataclass
+class GraphSet:
+    """Several episodes as one disjoint graph; states [F, J, Dj] / [F, B, Db] (all items share the frame times)."""
+
+    items: list[EpisodeFeatures]
+    t: torch.Tensor  # [F]
+    joint_state: torch.Tensor  # [F, J, Dj]
+    beam_state: torch.Tensor  # [F, B, Db]
+    static: Static
+    joint_offsets: np.ndarray  # [n_items + 1]
+    beam_offsets: np.ndarray  # [n_items + 1]
+
+    @classmethod
+    def build(cls, items: list[EpisodeFeatures]) -> "GraphSet":
+        t = items[0].t
+        for f in items:
+            if f.t.shape != t.shape or not np.allclose(f.t, t):
+                raise ValueError(f"episode {f.name} has frame times {f.t.tolist()}, {items[0].name} has {t.tolist()}; "
+                                 "a graph set needs episodes saved at the same frames")
+        inc, jo, bo = disjoint_union([f.incidence for f in items])
+        cat = lambda arrays: torch.as_tensor(np.concatenate(arrays, axis=-2), dtype=torch.float32)  # noqa: E731
+        return cls(items=items, t=torch.as_tensor(t, dtype=torch.float32),
+                   joint_state=cat([f.joint_state for f in items]), beam_state=cat([f.beam_state for f in items]),
+                   static=Static(cat([f.joint_bc for f in items]), cat([f.beam_bc for f in items]),
+                                 inc.tensors()),
+                   joint_offsets=jo, beam_offsets=bo)
+
+    @property
+    def index(self) -> GraphIndex:
+        return self.static.index
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def batches(self, batch_size: int | None, generator: torch.Generator) -> list["GraphSet"]:
+        """Shuffled mini-batches of items (batch_size None or <= 0: the whole set, batch gradient descent)."""
+        if not batch_size or batch_size <= 0 or batch_size >= len(self.items):
+            return [self]
+        order = torch.randperm(len(self.items), generator=generator).tolist()
+        return [GraphSet.build([self.items[i] for i in order[s:s + batch_size]])
+                for s in range(0, len(order), batch_size)]

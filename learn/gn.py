@@ -1,0 +1,47 @@
+"""A graph-network block over joints and beams: interaction MLPs per directed edge, sum per receiver, update MLPs."""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from learn.graph import GraphIndex
+
+
+def mlp(n_in: int, widths: list[int], n_out: int) -> nn.Sequential:
+    """ReLU MLP n_in -> widths... -> n_out (linear output); pyramid-shaped when widths decrease."""
+    layers: list[nn.Module] = []
+    for w in widths:
+        layers += [nn.Linear(n_in, w), nn.ReLU()]
+        n_in = w
+    layers.append(nn.Linear(n_in, n_out))
+    return nn.Sequential(*layers)
+
+
+def sum_to(messages: torch.Tensor, index: torch.Tensor, n: int) -> torch.Tensor:
+    """[..., E, H] summed over the edges sharing a receiver -> [..., n, H]."""
+    out = messages.new_zeros(*messages.shape[:-2], n, messages.shape[-1])
+    return out.index_add_(-2, index, messages)
+
+
+class GNBlock(nn.Module):
+    """The thesis' GN block (its Figure 34): f_I-joint and f_I-beam see cat(X_beam, X_sender, X_receiver, X_edge)
+    of each directed edge; f_U-beam sees cat(X_beam, sum of I_beam), f_U-joint cat(X_joint, sum of I_joint)."""
+
+    def __init__(self, joint_in: int, beam_in: int, edge_in: int, latent: int, widths: list[int],
+                 joint_out: int, beam_out: int):
+        super().__init__()
+        pair = beam_in + 2 * joint_in + edge_in
+        self.joint_interaction = mlp(pair, widths, latent)
+        self.beam_interaction = mlp(pair, widths, latent)
+        self.beam_update = mlp(beam_in + latent, widths, beam_out)
+        self.joint_update = mlp(joint_in + latent, widths, joint_out)
+
+    def forward(self, joints: torch.Tensor, beams: torch.Tensor, edges: torch.Tensor,
+                g: GraphIndex) -> tuple[torch.Tensor, torch.Tensor]:
+        # joints [..., J, Dj], beams [..., B, Db], edges [..., E, De] -> [..., J, joint_out], [..., B, beam_out]
+        pair = torch.cat([beams.index_select(-2, g.edge_beam), joints.index_select(-2, g.senders),
+                          joints.index_select(-2, g.receivers), edges], dim=-1)  # [..., E, P]
+        to_joints = sum_to(self.joint_interaction(pair), g.receivers, g.n_joints)  # [..., J, latent]
+        to_beams = sum_to(self.beam_interaction(pair), g.edge_beam, g.n_beams)  # [..., B, latent]
+        return (self.joint_update(torch.cat([joints, to_joints], dim=-1)),
+                self.beam_update(torch.cat([beams, to_beams], dim=-1)))

@@ -1,0 +1,176 @@
+"""Graph of a design: joints are nodes, beams are directed edges; named feature layouts declared once.
+
+Every feature vector is a concatenation of named fields. A field has a kind that says how it transforms:
+- "point":  a position (mm); translated to a local origin and rotated,
+- "vector": a displacement between points (mm); rotated only,
+- "stress": a Cauchy stress in Voigt order xx, yy, zz, xy, xz, yz (MPa); rotated as R s R^T,
+- "scalar": unchanged (flags, one-hot codes, time).
+Columns are only ever addressed through `Term.slice(name)` and `Term.kind_mask(kind)`, never by number.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+KINDS = ("point", "vector", "stress", "scalar")
+WIDTH = {"point": 3, "vector": 3, "stress": 6, "scalar": 1}
+
+
+@dataclass(frozen=True)
+class Field:
+    name: str
+    kind: str
+    size: int = 0  # 0: the kind's natural width
+
+    @property
+    def width(self) -> int:
+        return self.size or WIDTH[self.kind]
+
+
+@dataclass(frozen=True)
+class Term:
+    """One term (geometry, stress or boundary condition) of a block's feature vector."""
+
+    name: str
+    fields: tuple[Field, ...]
+
+    @property
+    def size(self) -> int:
+        return sum(f.width for f in self.fields)
+
+    def slice(self, name: str) -> slice:
+        start = 0
+        for f in self.fields:
+            if f.name == name:
+                return slice(start, start + f.width)
+            start += f.width
+        raise KeyError(f"term {self.name!r} has no field {name!r}; fields: {[f.name for f in self.fields]}")
+
+    def slices(self, kind: str) -> list[slice]:
+        return [self.slice(f.name) for f in self.fields if f.kind == kind]
+
+    def names(self, kind: str | None = None) -> list[str]:
+        return [f.name for f in self.fields if kind is None or f.kind == kind]
+
+
+JOINT_CORNERS = ("sw", "se", "ne", "nw")  # mid-height quad corners, counter-clockwise from (i, j) = (0, 0)
+JOINT_CORNER_IJ = ((0, 0), (1, 0), (1, 1), (0, 1))  # 0 = low index side, 1 = high index side
+BOX_CORNERS = tuple(f"{c}_{h}" for h in ("bottom", "top") for c in JOINT_CORNERS)
+SECTIONS = ("start", "middle", "end")  # beam cross-sections at node planes i = 0, (nl-1)/2, nl-1
+SECTION_CORNERS = ("right_bottom", "left_bottom", "left_top", "right_top")  # (j, k) = (0,0) (1,0) (1,1) (0,1)
+SECTION_CORNER_JK = ((0, 0), (1, 0), (1, 1), (0, 1))
+BEAM_KINDS = ("up", "down", "passive")  # data_schema beam_kind codes 0, 1, 2
+
+JOINT_GEOMETRY = Term("geometry", (
+    Field("center", "point"),  # centre of the mid-height quad
+    *(Field(f"corner_{c}", "vector") for c in JOINT_CORNERS),  # centre -> mid-height quad corner
+    Field("extrusion", "vector"),  # centre -> top-face centre
+))
+JOINT_STRESS = Term("stress", tuple(Field(f"corner_{c}", "stress") for c in BOX_CORNERS))
+JOINT_BC = Term("bc", (
+    Field("fixed", "scalar"),
+    Field("position", "vector"),  # reference centre relative to the fixed joint's reference centre
+))
+BEAM_GEOMETRY = Term("geometry", tuple(
+    f for s in SECTIONS for f in (
+        Field(f"{s}_center", "point"),
+        Field(f"{s}_width", "vector"),  # centre -> middle of the left edge (half width, across to the left)
+        Field(f"{s}_height", "vector"),  # centre -> middle of the top edge (half thickness, up)
+    )))
+BEAM_STRESS = Term("stress", tuple(Field(f"{s}_{c}", "stress") for s in SECTIONS for c in SECTION_CORNERS))
+BEAM_BC = Term("bc", (
+    *(Field(f"kind_{k}", "scalar") for k in BEAM_KINDS),  # one-hot actuator kind
+    Field("position", "vector"),  # reference middle centre relative to the fixed joint's reference centre
+))
+
+
+@dataclass(frozen=True)
+class Block:
+    """A block type: its three feature terms and the point its features are translated to for its own update.
+
+    The state the simulator advances is cat(geometry, stress); the boundary-condition term stays constant.
+    """
+
+    name: str
+    geometry: Term
+    stress: Term
+    bc: Term
+    origin: str  # a point field of `geometry`
+
+    @property
+    def state_size(self) -> int:
+        return self.geometry.size + self.stress.size
+
+    @property
+    def geometry_slice(self) -> slice:
+        return slice(0, self.geometry.size)
+
+    @property
+    def stress_slice(self) -> slice:
+        return slice(self.geometry.size, self.state_size)
+
+    @property
+    def origin_slice(self) -> slice:
+        return self.geometry.slice(self.origin)
+
+
+JOINT = Block("joint", JOINT_GEOMETRY, JOINT_STRESS, JOINT_BC, origin="center")
+BEAM = Block("beam", BEAM_GEOMETRY, BEAM_STRESS, BEAM_BC, origin="middle_center")
+
+
+@dataclass(frozen=True)
+class Incidence:
+    """Directed edges of a graph: each beam b = (a, c) gives a -> c (edge b) and c -> a (edge B + b)."""
+
+    senders: np.ndarray  # [E] joint
+    receivers: np.ndarray  # [E] joint
+    edge_beam: np.ndarray  # [E] beam
+    n_joints: int
+    n_beams: int
+
+    @classmethod
+    def from_beams(cls, beams: np.ndarray, n_joints: int) -> "Incidence":
+        beams = np.asarray(beams, dtype=np.int64).reshape(-1, 2)
+        b = np.arange(len(beams))
+        return cls(senders=np.concatenate([beams[:, 0], beams[:, 1]]),
+                   receivers=np.concatenate([beams[:, 1], beams[:, 0]]),
+                   edge_beam=np.concatenate([b, b]), n_joints=int(n_joints), n_beams=len(beams))
+
+    @property
+    def n_edges(self) -> int:
+        return len(self.senders)
+
+    def adjacency(self) -> np.ndarray:
+        """The thesis' M_adj: [B, J] ones where a beam touches a joint."""
+        m = np.zeros((self.n_beams, self.n_joints), dtype=np.int8)
+        m[self.edge_beam, self.senders] = 1
+        return m
+
+    def tensors(self, device: str | torch.device = "cpu") -> "GraphIndex":
+        return GraphIndex(*(torch.as_tensor(a, device=device) for a in (self.senders, self.receivers, self.edge_beam)),
+                          n_joints=self.n_joints, n_beams=self.n_beams)
+
+
+@dataclass
+class GraphIndex:
+    """Incidence as torch index tensors, as the networks consume it."""
+
+    senders: torch.Tensor  # [E]
+    receivers: torch.Tensor  # [E]
+    edge_beam: torch.Tensor  # [E]
+    n_joints: int
+    n_beams: int
+
+
+def disjoint_union(parts: list[Incidence]) -> tuple[Incidence, np.ndarray, np.ndarray]:
+    """One graph holding all parts; also the joint and beam offsets [P + 1] of every part."""
+    jo = np.cumsum([0] + [p.n_joints for p in parts])
+    bo = np.cumsum([0] + [p.n_beams for p in parts])
+    inc = Incidence(
+        senders=np.concatenate([p.senders + jo[i] for i, p in enumerate(parts)]),
+        receivers=np.concatenate([p.receivers + jo[i] for i, p in enumerate(parts)]),
+        edge_beam=np.concatenate([p.edge_beam + bo[i] for i, p in enumerate(parts)]),
+        n_joints=int(jo[-1]), n_beams=int(bo[-1]))
+    return inc, jo, bo

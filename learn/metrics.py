@@ -1,0 +1,73 @@
+"""Losses and rollout errors: multi-step training loss and position error relative to the design size."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from learn.dataset import GraphSet
+from learn.features import BEAM_POINTS, JOINT_POINTS, rebuild_all_points
+from learn.graph import BEAM, JOINT
+from learn.model import Simulator
+from learn.rollout import unroll
+
+
+def column_weights(block, stress_weight: float) -> torch.Tensor:
+    w = torch.ones(block.state_size)
+    w[block.stress_slice] = stress_weight
+    return w
+
+
+def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_std: float = 0.0,
+                   stress_weight: float = 1.0, generator: torch.Generator | None = None) -> torch.Tensor:
+    """Mean squared error of the states after 1..horizon steps from every start frame, in units of the per-column
+    step std; `noise_std` (same units) perturbs the start states so the model learns to correct its own drift."""
+    F = len(batch.t)
+    h = max(1, min(int(horizon), F - 1))
+    S = F - h  # start frames 0 .. F-1-h
+    j, b = batch.joint_state[:S], batch.beam_state[:S]
+    if noise_std > 0:
+        j = j + noise_std * model.joint_delta.std * torch.randn(j.shape, generator=generator)
+        b = b + noise_std * model.beam_delta.std * torch.randn(b.shape, generator=generator)
+    wj, wb = column_weights(JOINT, stress_weight), column_weights(BEAM, stress_weight)
+    loss = torch.zeros(())
+    for k in range(h):
+        j, b = model.step(j, b, batch.static, batch.t[k:S + k])
+        ej = (j - batch.joint_state[k + 1:S + k + 1]) / model.joint_delta.std
+        eb = (b - batch.beam_state[k + 1:S + k + 1]) / model.beam_delta.std
+        loss = loss + (wj * ej ** 2).mean() + (wb * eb ** 2).mean()
+    return loss / h
+
+
+def point_owner(batch: GraphSet) -> np.ndarray:
+    """[P] item of every point rebuilt from the batch's union graph (joints' points first, then beams')."""
+    jo, bo = batch.joint_offsets, batch.beam_offsets
+    joint_item = np.repeat(np.arange(len(batch)), np.diff(jo))
+    beam_item = np.repeat(np.arange(len(batch)), np.diff(bo))
+    return np.concatenate([np.repeat(joint_item, len(JOINT_POINTS)), np.repeat(beam_item, len(BEAM_POINTS))])
+
+
+def fea_points(batch: GraphSet) -> np.ndarray:
+    """[F, P, 3] FEA positions in the order rebuild_all_points gives for the batch's union graph."""
+    joint_parts, beam_parts = [], []
+    for f in batch.items:
+        n_joint_points = f.incidence.n_joints * len(JOINT_POINTS)
+        joint_parts.append(f.fea_points[:, :n_joint_points])
+        beam_parts.append(f.fea_points[:, n_joint_points:])
+    return np.concatenate(joint_parts + beam_parts, axis=1)
+
+
+def rollout_errors(model: Simulator, batch: GraphSet) -> tuple[np.ndarray, np.ndarray]:
+    """Full rollouts from frame 0 of every item -> max and mean point error / design size, each [n_items, F]."""
+    with torch.inference_mode():
+        js, bs = unroll(model, batch.joint_state[0], batch.beam_state[0], batch.static, batch.t)
+        pred = rebuild_all_points(js, bs).numpy()
+    err = np.linalg.norm(pred - fea_points(batch), axis=-1)  # [F, P]
+    owner = point_owner(batch)
+    size = np.array([f.design_size for f in batch.items])
+    n = len(batch)
+    max_err = np.zeros((n, err.shape[0]))
+    for frame, e in enumerate(err):
+        np.maximum.at(max_err[:, frame], owner, e)
+    counts = np.bincount(owner, minlength=n)
+    mean_err = np.stack([np.bincount(owner, weights=e, minlength=n) / counts for e in err], axis=1)
+    return max_err / size[:, None], mean_err / size[:, None]

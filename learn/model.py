@@ -1,0 +1,156 @@
+"""The learned simulator: per-term PCA encoding, a single or double GN core, and G(t+1) = G(t) + dG."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from learn.gn import GNBlock
+from learn.graph import BEAM, JOINT, Block, GraphIndex
+from learn.pca import Normalizer, TermPCA
+
+TERMS = ("joint_geometry", "joint_stress", "joint_bc", "beam_geometry", "beam_stress", "beam_bc")
+EDGE_FEATURES = 6  # sender centre and receiver centre relative to the beam's middle centre
+
+
+class SingleGN(nn.Module):
+    """One GN block from the input graph straight to the update dG."""
+
+    def __init__(self, joint_in, beam_in, edge_in, joint_out, beam_out, latent: int, widths: list[int]):
+        super().__init__()
+        self.gn = GNBlock(joint_in, beam_in, edge_in, latent, widths, joint_out, beam_out)
+
+    def forward(self, joints, beams, edges, g: GraphIndex):
+        return self.gn(joints, beams, edges, g)
+
+
+class DoubleGN(nn.Module):
+    """GN1 computes a latent graph G'; GN2 sees cat(G, G') and computes dG (unshared parameters)."""
+
+    def __init__(self, joint_in, beam_in, edge_in, joint_out, beam_out, latent: int, widths: list[int]):
+        super().__init__()
+        self.gn1 = GNBlock(joint_in, beam_in, edge_in, latent, widths, latent, latent)
+        self.gn2 = GNBlock(joint_in + latent, beam_in + latent, edge_in, latent, widths, joint_out, beam_out)
+
+    def forward(self, joints, beams, edges, g: GraphIndex):
+        lj, lb = self.gn1(joints, beams, edges, g)
+        return self.gn2(torch.cat([joints, lj], -1), torch.cat([beams, lb], -1), edges, g)
+
+
+CORES = {"single_gn": SingleGN, "double_gn": DoubleGN}
+
+
+@dataclass
+class Static:
+    """What stays fixed during a rollout: boundary-condition terms and the incidence."""
+
+    joint_bc: torch.Tensor  # [J, JOINT.bc.size]
+    beam_bc: torch.Tensor  # [B, BEAM.bc.size]
+    index: GraphIndex
+
+
+def _point_mask(block: Block) -> torch.Tensor:
+    """[n_fields] 1.0 for point fields of the geometry term (every geometry field is 3 wide)."""
+    assert all(f.width == 3 for f in block.geometry.fields)
+    return torch.tensor([1.0 if f.kind == "point" else 0.0 for f in block.geometry.fields])
+
+
+def local_geometry(geometry: torch.Tensor, block: Block) -> torch.Tensor:
+    """[..., n, G] geometry with every point relative to the block's own origin point."""
+    origin = geometry[..., block.origin_slice]
+    fields = geometry.unflatten(-1, (-1, 3)) - _point_mask(block).to(geometry)[:, None] * origin[..., None, :]
+    return fields.flatten(-2)
+
+
+class Simulator(nn.Module):
+    """States in, next states out; every statistic (PCA, normalisers) is a buffer of this module.
+
+    args: core ("double_gn" | "single_gn"), latent (int), widths (list[int]), time_input (bool),
+          pca ({term: [D, K]} for every name in TERMS) -- all plain types, so they are saved in checkpoints.
+    """
+
+    def __init__(self, args: dict):
+        super().__init__()
+        self.args = dict(args)
+        self.pca = nn.ModuleDict({t: TermPCA(*args["pca"][t]) for t in TERMS})
+        self.edge_norm = Normalizer(EDGE_FEATURES)
+        self.joint_delta = Normalizer(JOINT.state_size)
+        self.beam_delta = Normalizer(BEAM.state_size)
+        extra = 1 if args.get("time_input", True) else 0
+        joint_in = sum(self.pca[t].k for t in TERMS[:3]) + extra
+        beam_in = sum(self.pca[t].k for t in TERMS[3:]) + extra
+        self.core = CORES[args["core"]](joint_in, beam_in, EDGE_FEATURES, JOINT.state_size, BEAM.state_size,
+                                        int(args["latent"]), [int(w) for w in args["widths"]])
+
+    # ------------------------------------------------------------------------------------------- features
+    def raw_terms(self, joint_state, beam_state, static: Static) -> dict[str, torch.Tensor]:
+        """Every term as the PCA sees it (geometry translated to each block's own origin)."""
+        return {
+            "joint_geometry": local_geometry(joint_state[..., JOINT.geometry_slice], JOINT),
+            "joint_stress": joint_state[..., JOINT.stress_slice],
+            "joint_bc": static.joint_bc,
+            "beam_geometry": local_geometry(beam_state[..., BEAM.geometry_slice], BEAM),
+            "beam_stress": beam_state[..., BEAM.stress_slice],
+            "beam_bc": static.beam_bc,
+        }
+
+    def edge_features(self, joint_state, beam_state, g: GraphIndex) -> torch.Tensor:
+        """[..., E, 6] sender and receiver centres relative to the beam's middle centre (the pair's origin)."""
+        jc = joint_state[..., JOINT.origin_slice]
+        bc = beam_state[..., BEAM.origin_slice].index_select(-2, g.edge_beam)
+        return torch.cat([jc.index_select(-2, g.senders) - bc, jc.index_select(-2, g.receivers) - bc], -1)
+
+    def coefficients(self, joint_state, beam_state, static: Static) -> dict[str, torch.Tensor]:
+        return {t: self.pca[t](x) for t, x in self.raw_terms(joint_state, beam_state, static).items()}
+
+    def encode(self, joint_state, beam_state, static: Static, t):
+        """-> network inputs joints [..., J, Dj], beams [..., B, Db], edges [..., E, 6]."""
+        z = self.coefficients(joint_state, beam_state, static)
+        lead = joint_state.shape[:-2]
+        parts_j = [z[k].expand(*lead, *z[k].shape[-2:]) for k in TERMS[:3]]
+        parts_b = [z[k].expand(*lead, *z[k].shape[-2:]) for k in TERMS[3:]]
+        if self.args.get("time_input", True):
+            t = torch.as_tensor(t, dtype=joint_state.dtype).expand(lead).reshape(*lead, 1, 1)
+            parts_j.append(t.expand(*lead, joint_state.shape[-2], 1))
+            parts_b.append(t.expand(*lead, beam_state.shape[-2], 1))
+        edges = self.edge_norm(self.edge_features(joint_state, beam_state, static.index))
+        return torch.cat(parts_j, -1), torch.cat(parts_b, -1), edges
+
+    # ------------------------------------------------------------------------------------------- dynamics
+    def forward(self, joint_state, beam_state, static: Static, t):
+        """Normalised updates dG: [..., J, JOINT.state_size], [..., B, BEAM.state_size]."""
+        return self.core(*self.encode(joint_state, beam_state, static, t), static.index)
+
+    def step(self, joint_state, beam_state, static: Static, t):
+        """G(t+1) = G(t) + dG, in raw units."""
+        dj, db = self(joint_state, beam_state, static, t)
+        return joint_state + self.joint_delta.inverse(dj), beam_state + self.beam_delta.inverse(db)
+
+    @classmethod
+    def fit(cls, args: dict, joint_state: torch.Tensor, beam_state: torch.Tensor, static: Static,
+            retention: float = 0.98, delta_floor: float = 0.01) -> "Simulator":
+        """A simulator whose PCA and normalisers are fitted on training states [F, J, Dj], [F, B, Db]."""
+        probe = cls({**args, "pca": {t: [1, 1] for t in TERMS}})
+        raw = probe.raw_terms(joint_state, beam_state, static)
+        pcas = {t: TermPCA.fit(x.reshape(-1, x.shape[-1]).numpy(), retention) for t, x in raw.items()}
+        model = cls({**args, "pca": {t: [p.dim, p.k] for t, p in pcas.items()}})
+        for t, p in pcas.items():
+            model.pca[t].load_state_dict(p.state_dict())
+        edges = probe.edge_features(joint_state, beam_state, static.index)
+        for name, x, block in (("edge_norm", edges, None), ("joint_delta", joint_state.diff(dim=0), JOINT),
+                               ("beam_delta", beam_state.diff(dim=0), BEAM)):
+            groups = None if block is None else [block.geometry_slice, block.stress_slice]
+            norm = Normalizer.fit(x.reshape(-1, x.shape[-1]).numpy(), delta_floor if block else 0.0, groups)
+            getattr(model, name).load_state_dict(norm.state_dict())
+        return model
+
+    @property
+    def n_parameters(self) -> int:
+        return sum(p.numel() for p in self.parameters())
+
+
+def static_from(joint_bc: np.ndarray, beam_bc: np.ndarray, incidence, device="cpu") -> Static:
+    return Static(torch.as_tensor(joint_bc, dtype=torch.float32, device=device),
+                  torch.as_tensor(beam_bc, dtype=torch.float32, device=device), incidence.tensors(device))

@@ -1,0 +1,99 @@
+"""Per-term PCA and normalisers as torch modules whose statistics are buffers, saved with the model."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import nn
+
+MIN_STD = 1e-6
+
+
+class Normalizer(nn.Module):
+    """x -> (x - mean) / std per column; `floor` keeps near-constant columns from being blown up."""
+
+    def __init__(self, dim: int):
+        super().__init__()
+        self.register_buffer("mean", torch.zeros(dim))
+        self.register_buffer("std", torch.ones(dim))
+
+    @classmethod
+    def fit(cls, x: np.ndarray, floor: float = 0.0, groups: list[slice] | None = None) -> "Normalizer":
+        """x [n, dim]; a column whose std is below `floor` times the mean std of its group of columns (groups:
+        column slices of one unit, e.g. geometry and stress; default all columns) gets that value instead."""
+        x = np.asarray(x, dtype=np.float64)
+        std = x.std(axis=0)
+        for g in groups or [slice(None)]:
+            std[g] = np.maximum(std[g], max(floor * std[g].mean(), MIN_STD))
+        n = cls(x.shape[1])
+        n.mean.copy_(torch.as_tensor(x.mean(axis=0)))
+        n.std.copy_(torch.as_tensor(std))
+        return n
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return (x - self.mean) / self.std
+
+    def inverse(self, z: torch.Tensor) -> torch.Tensor:
+        return z * self.std + self.mean
+
+
+class TermPCA(nn.Module):
+    """One feature term: standardise each column, project on the principal axes that retain `retention` of the
+    variance, whiten. Standardising first keeps rare but decisive columns (the fixed-joint flag) from being cut.
+
+    Buffers: mean, scale [D]; components [D, K]; sigma, lo, hi [K] (training range of the coefficients);
+    explained (the variance fraction retained).
+    """
+
+    def __init__(self, dim: int, k: int):
+        super().__init__()
+        self.register_buffer("mean", torch.zeros(dim))
+        self.register_buffer("scale", torch.ones(dim))
+        self.register_buffer("components", torch.zeros(dim, k))
+        self.register_buffer("sigma", torch.ones(k))
+        self.register_buffer("lo", torch.full((k,), -torch.inf))
+        self.register_buffer("hi", torch.full((k,), torch.inf))
+        self.register_buffer("explained", torch.tensor(1.0))
+
+    @property
+    def dim(self) -> int:
+        return self.components.shape[0]
+
+    @property
+    def k(self) -> int:
+        return self.components.shape[1]
+
+    @classmethod
+    def fit(cls, x: np.ndarray, retention: float = 0.98) -> "TermPCA":
+        """x [n, D] training rows (training split only)."""
+        x = np.asarray(x, dtype=np.float64)
+        mean, std = x.mean(axis=0), x.std(axis=0)
+        scale = np.where(std > MIN_STD, std, 1.0)
+        xs = (x - mean) / scale
+        eigval, eigvec = np.linalg.eigh(xs.T @ xs / max(len(xs), 1))
+        order = np.argsort(eigval)[::-1]
+        eigval, eigvec = np.clip(eigval[order], 0.0, None), eigvec[:, order]
+        total = eigval.sum()
+        if total <= 0:
+            k = 1
+        else:
+            k = int(np.searchsorted(np.cumsum(eigval) / total, min(retention, 1.0) - 1e-12) + 1)
+            k = min(k, x.shape[1])
+        p = cls(x.shape[1], k)
+        sigma = np.sqrt(np.maximum(eigval[:k], MIN_STD ** 2))
+        z = xs @ eigvec[:, :k] / sigma
+        for name, value in (("mean", mean), ("scale", scale), ("components", eigvec[:, :k]), ("sigma", sigma),
+                            ("lo", z.min(axis=0)), ("hi", z.max(axis=0)),
+                            ("explained", eigval[:k].sum() / total if total > 0 else 1.0)):
+            getattr(p, name).copy_(torch.as_tensor(value))
+        return p
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:  # [..., D] -> [..., K]
+        return ((x - self.mean) / self.scale) @ self.components / self.sigma
+
+    def inverse(self, z: torch.Tensor) -> torch.Tensor:  # [..., K] -> [..., D]
+        return (z * self.sigma) @ self.components.T * self.scale + self.mean
+
+    def outside(self, z: torch.Tensor, margin: float) -> torch.Tensor:
+        """[..., K] bool: coefficients beyond the training range widened by `margin` times its width."""
+        width = self.hi - self.lo
+        return (z < self.lo - margin * width) | (z > self.hi + margin * width)

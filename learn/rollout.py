@@ -1,0 +1,67 @@
+"""Rollout: advance a design's initial graph step by step and rebuild points comparable to the FEA nodes."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from learn.features import EpisodeFeatures, extract, rebuild_all_points
+from learn.model import Simulator, Static, static_from
+
+
+def unroll(model: Simulator, joint_state: torch.Tensor, beam_state: torch.Tensor, static: Static,
+           t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """From states [..., J, Dj], [..., B, Db] at t[0], step through t[1:]; -> [F, ..., J, Dj], [F, ..., B, Db]."""
+    joints, beams = [joint_state], [beam_state]
+    for k in range(len(t) - 1):
+        j, b = model.step(joints[-1], beams[-1], static, t[k])
+        joints.append(j)
+        beams.append(b)
+    return torch.stack(joints), torch.stack(beams)
+
+
+@dataclass
+class Rollout:
+    """Every intermediate graph of a rollout (frame 0 = the input design) and the points rebuilt from it."""
+
+    t: np.ndarray  # [F]
+    joint_states: np.ndarray  # [F, J, JOINT.state_size] geometry | stress, translated (fixed joint at origin)
+    beam_states: np.ndarray  # [F, B, BEAM.state_size]
+    points: np.ndarray  # [F, P, 3] mm, in the episode's own coordinates (comparable to node_xyz[:, point_nodes])
+    point_nodes: np.ndarray  # [P] FEA node id each point stands for
+    origin: np.ndarray  # [3] translation between the graphs' frame and the episode's coordinates
+    features: EpisodeFeatures  # the source, for its incidence, boundary conditions and FEA reference
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.t)
+
+    def graph(self, frame: int) -> tuple[np.ndarray, np.ndarray]:
+        """(joint features, beam features) of one frame; the incidence is features.incidence."""
+        return self.joint_states[frame], self.beam_states[frame]
+
+    @property
+    def local_points(self) -> np.ndarray:
+        """[F, P, 3] points in the translated frame (comparable to features.fea_points)."""
+        return self.points - self.origin
+
+
+def as_features(source) -> EpisodeFeatures:
+    return source if isinstance(source, EpisodeFeatures) else extract(source)
+
+
+def rollout(model: Simulator, source, steps: int = 10, t: np.ndarray | None = None) -> Rollout:
+    """Run `steps` steps from frame 0 of `source` (an Episode or its EpisodeFeatures; only frame 0 is used).
+    Frame times: `t` if given, else the source's own when it has steps + 1 frames, else evenly spaced in [0, 1]."""
+    f = as_features(source)
+    if t is None:
+        t = f.t if len(f.t) == steps + 1 else np.linspace(0.0, 1.0, steps + 1)
+    t = np.asarray(t, dtype=np.float64)
+    static = static_from(f.joint_bc, f.beam_bc, f.incidence)
+    with torch.inference_mode():
+        js, bs = unroll(model, torch.as_tensor(f.joint_state[0]), torch.as_tensor(f.beam_state[0]), static,
+                        torch.as_tensor(t, dtype=torch.float32))
+        pts = rebuild_all_points(js, bs)
+    return Rollout(t=t, joint_states=js.numpy(), beam_states=bs.numpy(), points=pts.numpy() + f.origin,
+                   point_nodes=f.point_nodes, origin=f.origin, features=f)

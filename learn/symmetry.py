@@ -1,0 +1,62 @@
+"""Spatial symmetry: translate a design so its fixed joint sits at the origin, rotate about z (points, vectors, stress)."""
+from __future__ import annotations
+
+import numpy as np
+
+from learn.graph import Term
+
+VOIGT = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))  # xx, yy, zz, xy, xz, yz
+
+
+def rotation_z(angle: float) -> np.ndarray:
+    """[3, 3] rotation by `angle` radians counter-clockwise about +z."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def voigt_to_tensor(s: np.ndarray) -> np.ndarray:
+    """[..., 6] Voigt -> [..., 3, 3] symmetric tensor."""
+    t = np.zeros(s.shape[:-1] + (3, 3), dtype=s.dtype)
+    for n, (i, j) in enumerate(VOIGT):
+        t[..., i, j] = t[..., j, i] = s[..., n]
+    return t
+
+
+def tensor_to_voigt(t: np.ndarray) -> np.ndarray:
+    return np.stack([t[..., i, j] for i, j in VOIGT], axis=-1)
+
+
+def rotate_stress(s: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """[..., 6] Voigt stresses rotated as R s R^T."""
+    t = voigt_to_tensor(s)
+    return tensor_to_voigt(np.einsum("ia,...ab,jb->...ij", R, t, R).astype(s.dtype))
+
+
+def rotate_vectors(v: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """[..., 3] points or vectors about the origin."""
+    return (v @ R.T).astype(v.dtype)
+
+
+def rotate_term(x: np.ndarray, term: Term, R: np.ndarray) -> np.ndarray:
+    """Rotate every point, vector and stress field of a feature array [..., term.size]."""
+    out = x.copy()
+    for kind in ("point", "vector"):
+        for sl in term.slices(kind):
+            out[..., sl] = rotate_vectors(x[..., sl], R)
+    for sl in term.slices("stress"):
+        out[..., sl] = rotate_stress(x[..., sl], R)
+    return out
+
+
+def translate_term(x: np.ndarray, term: Term, origin: np.ndarray) -> np.ndarray:
+    """Points of a feature array [..., term.size] relative to `origin` [..., 3]; vectors and stresses unchanged."""
+    out = x.copy()
+    for sl in term.slices("point"):
+        out[..., sl] = x[..., sl] - origin
+    return out
+
+
+def rotation_angles(n: int, rng: np.random.Generator | None = None) -> np.ndarray:
+    """n angles evenly spread over a full turn, the first one 0 unless `rng` shifts them all at random."""
+    offset = 0.0 if rng is None else rng.uniform(0.0, 2.0 * np.pi / max(n, 1))
+    return offset + 2.0 * np.pi * np.arange(n) / max(n, 1)

@@ -1,0 +1,156 @@
+"""Train the learned simulator: `.venv/bin/python -m learn.train [key=value ...]` (conf/train.yaml); resumable."""
+from __future__ import annotations
+
+import csv
+import logging
+import math
+import time
+from pathlib import Path
+
+import hydra
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from learn import checkpoint
+from learn.dataset import GraphSet, augment, episode_paths, load_features, split_names
+from learn.metrics import multistep_loss, rollout_errors
+from learn.model import Simulator
+
+log = logging.getLogger(__name__)
+LAST, BEST = "last.pt", "best.pt"
+
+
+def model_args(cfg_model: DictConfig) -> dict:
+    return {"core": str(cfg_model.core), "latent": int(cfg_model.latent),
+            "widths": [int(w) for w in cfg_model.widths], "time_input": bool(cfg_model.time_input)}
+
+
+def learning_rate(cfg: DictConfig, epoch: int) -> float:
+    """Thesis schedule: the base rate, times lr_drop_factor from lr_drop_at * epochs on."""
+    drop = epoch >= int(cfg.optim.lr_drop_at * cfg.epochs)
+    return float(cfg.optim.lr) * (float(cfg.optim.lr_drop_factor) if drop else 1.0)
+
+
+def evaluate_split(model: Simulator, data: GraphSet, cfg: DictConfig) -> dict:
+    model.eval()
+    with torch.no_grad():
+        loss = float(multistep_loss(model, data, cfg.rollout_horizon, 0.0, cfg.stress_weight))
+    max_err, _ = rollout_errors(model, data)
+    model.train()
+    worst = max_err.max(axis=1)  # [items] max over frames
+    return {"val_loss": loss, "val_rollout": float(worst.mean()), "val_rollout_worst": float(worst.max())}
+
+
+def append_result(path: str | Path, row: dict) -> None:
+    """One row per run; the header is written by the first run."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    new = not path.exists() or path.stat().st_size == 0
+    with path.open("a", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(row))
+        if new:
+            w.writeheader()
+        w.writerow(row)
+
+
+def train(cfg: DictConfig) -> dict:
+    """Fit PCA and normalisers on the training split, train with early stopping; returns the run summary."""
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
+    run_dir = Path(cfg.run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    last = run_dir / LAST
+    resumed = checkpoint.load(last) if cfg.resume and last.exists() else None
+    if resumed is not None and resumed.get("finished"):
+        log.info("run in %s has already finished (epoch %d); nothing to do", run_dir, resumed["epoch"])
+        return resumed["summary"]
+
+    features = load_features(episode_paths(cfg.data_dir))
+    by_name = {f.name: f for f in features}
+    split = resumed["split"] if resumed else split_names(features, cfg.split, cfg.seed)
+    missing = [n for s in split.values() for n in s if n not in by_name]
+    if missing:
+        raise FileNotFoundError(f"episodes of the checkpoint's split are missing from {cfg.data_dir}: {missing[:5]}")
+    log.info("episodes: %s", {s: len(v) for s, v in split.items()})
+    train_set = GraphSet.build(augment([by_name[n] for n in split["train"]], cfg.rotations, cfg.seed))
+    val_set = GraphSet.build([by_name[n] for n in split["val"] or split["train"]])
+
+    torch.manual_seed(cfg.seed)
+    if resumed:
+        model = checkpoint.model_from(resumed).train()
+    else:
+        model = Simulator.fit(model_args(cfg.model), train_set.joint_state, train_set.beam_state, train_set.static,
+                              cfg.pca_retention, cfg.delta_std_floor)
+    log.info("PCA dims %s; %d parameters", {t: p.k for t, p in model.pca.items()}, model.n_parameters)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.optim.lr, weight_decay=cfg.optim.weight_decay)
+    history, best, bad, start = [], math.inf, 0, 0
+    if resumed:
+        opt.load_state_dict(resumed["optimizer"])
+        history, best, bad, start = resumed["history"], resumed["best"], resumed["bad_epochs"], resumed["epoch"] + 1
+        log.info("resumed from %s at epoch %d", last, start)
+    config = OmegaConf.to_container(cfg, resolve=True)
+    t0 = time.perf_counter() - (history[-1]["seconds"] if history else 0.0)
+
+    def save(path: Path, epoch: int, finished: bool = False, summary: dict | None = None) -> None:
+        checkpoint.save(path, model, optimizer=opt.state_dict(), config=config, split=split, epoch=epoch,
+                        best=best, bad_epochs=bad, history=history, finished=finished, summary=summary or {})
+
+    epoch = start - 1
+    stop_reason = "epochs"
+    for epoch in range(start, int(cfg.epochs)):
+        for group in opt.param_groups:
+            group["lr"] = learning_rate(cfg, epoch)
+        gen = torch.Generator().manual_seed(int(cfg.seed) * 100003 + epoch)
+        losses = []
+        for batch in train_set.batches(cfg.batch_size, gen):
+            loss = multistep_loss(model, batch, cfg.rollout_horizon, cfg.noise_std, cfg.stress_weight, gen)
+            opt.zero_grad()
+            loss.backward()
+            if cfg.optim.grad_clip:
+                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.optim.grad_clip)
+            opt.step()
+            losses.append(float(loss.detach()))
+        row = {"epoch": epoch, "lr": learning_rate(cfg, epoch), "train_loss": float(np.mean(losses)),
+               **evaluate_split(model, val_set, cfg), "seconds": time.perf_counter() - t0}
+        history.append(row)
+        if row[cfg.monitor] < best:
+            best, bad = row[cfg.monitor], 0
+            save(run_dir / BEST, epoch)
+        else:
+            bad += 1
+        if epoch % int(cfg.log_every) == 0 or epoch == int(cfg.epochs) - 1:
+            log.info("epoch %d lr %.1e train %.4g val %.4g val_rollout %.4f (best %.4f) %.0fs", epoch, row["lr"],
+                     row["train_loss"], row["val_loss"], row["val_rollout"], best, row["seconds"])
+        if bad >= int(cfg.patience):
+            stop_reason = f"early stop: no {cfg.monitor} improvement in {bad} epochs"
+            break
+        if cfg.get("time_limit_min") and row["seconds"] > 60 * float(cfg.time_limit_min):
+            stop_reason = f"time limit {cfg.time_limit_min} min"
+            break
+        if (epoch + 1) % int(cfg.checkpoint_every) == 0:
+            save(last, epoch)
+
+    best_row = min(history, key=lambda r: r[cfg.monitor]) if history else {}
+    summary = {"run_dir": str(run_dir), "stop": stop_reason, "epochs_run": epoch + 1,
+               "best_epoch": best_row.get("epoch", -1), "monitor": cfg.monitor, "best": best,
+               "best_val_loss": best_row.get("val_loss", math.nan),
+               "best_val_rollout": best_row.get("val_rollout", math.nan),
+               "train_seconds": history[-1]["seconds"] if history else 0.0, "n_parameters": model.n_parameters,
+               "core": model.args["core"], "latent": model.args["latent"],
+               "widths": "x".join(map(str, model.args["widths"])),
+               "pca_dims": " ".join(f"{t}={p.k}" for t, p in model.pca.items())}
+    save(last, epoch, finished=True, summary=summary)
+    log.info("done (%s): %s", stop_reason, summary)
+    if cfg.get("results_csv"):
+        append_result(cfg.results_csv, {**summary, "overrides": cfg.get("overrides_label", "")})
+    return summary
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="train")
+def main(cfg: DictConfig) -> None:
+    train(cfg)
+
+
+if __name__ == "__main__":
+    main()
