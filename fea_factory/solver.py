@@ -136,7 +136,11 @@ class GridSolver:
     """One episode: build once, then `run()` steps t from 0 to 1 and returns the frames (rank 0)."""
 
     def __init__(self, design: Design, mesh: KeyedMesh, material: ReducedPolynomial, scene: Scene,
-                 S0_cells: np.ndarray, body_force: np.ndarray, settings: SolverSettings, comm):
+                 S0_cells: np.ndarray, body_force: np.ndarray, settings: SolverSettings, comm,
+                 clamp: str = "top_face"):
+        if clamp not in ("top_face", "block"):
+            raise ValueError(f"clamp = {clamp!r}: must be 'top_face' (the glued joint face) or 'block'")
+        self.clamp = clamp
         self.design, self.keyed, self.material, self.scene, self.settings, self.comm = (
             design, mesh, material, scene, settings, comm)
         self.stats = {"wall_mesh_s": 0.0, "wall_jit_s": 0.0, "wall_solve_s": 0.0, "wall_output_s": 0.0,
@@ -194,7 +198,7 @@ class GridSolver:
         R = ufl.derivative(Pi, self.u, ufl.TestFunction(self.V))
         K = ufl.derivative(R, self.u, ufl.TrialFunction(self.V))
         self.R_form, self.K_form = fem.form(R), fem.form(K)
-        self.bcs = [self._fixed_face_bc()]
+        self.bcs = [self._fixed_face_bc() if self.clamp == "top_face" else self._fixed_block_bc()]
         # outputs: Cauchy stress at Gauss points, node values through a Q1 space
         qp, qw = basix.make_quadrature(basix.CellType.hexahedron, s.stress_quadrature_degree)
         self.quad_points, self.quad_weights = np.asarray(qp), np.asarray(qw)
@@ -225,6 +229,15 @@ class GridSolver:
         expected = (keyed.preset.nodes_width - 1) ** 2
         if n_fixed != expected:
             raise RuntimeError(f"fixed face of joint {d.fixed_joint}: found {n_fixed} facets, expected {expected}")
+        return fem.dirichletbc(np.zeros(3), dofs, self.V)
+
+    def _fixed_block_bc(self):
+        """Clamp every node of the fixed joint block (a built-in end, for the beam reference solutions)."""
+        from dolfinx import fem
+
+        block = self.keyed.cell_key[self.cell_ids, 0]
+        cells = np.where(block == self.design.fixed_joint)[0].astype(np.int32)
+        dofs = fem.locate_dofs_topological(self.V, 3, cells)
         return fem.dirichletbc(np.zeros(3), dofs, self.V)
 
     # ---------------------------------------------------------------------------------- Newton
@@ -345,7 +358,7 @@ class GridSolver:
         t_start = time.perf_counter()
         self._make_snes()
         f_ref = self.load_norm()
-        atol = s.force_tol * max(f_ref, 1e-300)
+        atol = max(s.force_tol * f_ref, 1e-12)  # 1 pN floor: above round-off, so an unloaded scene converges
         self.snes.setTolerances(atol=atol, rtol=0.0, stol=0.0, max_it=s.max_it)
         self.stats["load_norm_N"] = f_ref
         frames = Frames(quad_points=self.quad_points, quad_weights=self.quad_weights)
@@ -363,7 +376,7 @@ class GridSolver:
             dt = min(dt, target - t_now)
             cut = 0
             while True:
-                self.u.vector.copy(x_backup)
+                x_backup.copy(self.u.vector)  # restart from the last converged state (petsc: a.copy(b) is b <- a)
                 if dt_prev:  # extrapolate along the load path: u + dt/dt_prev (u - u_prev)
                     self.u.vector.axpy(dt / dt_prev, x_backup - u_prev)
                 self.t.value = t_now + dt

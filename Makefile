@@ -1,0 +1,43 @@
+# morphsim: `make help` lists the targets.
+PY      ?= .venv/bin/python
+NP      ?= 1
+JOBS    ?= 1
+N       ?= 8
+OUT     ?= data/episodes
+MPIRUN  := OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 mpirun
+export OMPI_ALLOW_RUN_AS_ROOT=1
+export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1
+export OMP_NUM_THREADS ?= 1
+
+.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset validate bench-fea train evaluate sweep clean
+
+help:  ## list the targets
+	@grep -E '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-12s %s\n", $$1, $$2}'
+
+setup:  ## install Debian packages (FEniCSx, gmsh, MPI, OpenBLAS) and the .venv (idempotent)
+	bash scripts/setup.sh
+
+test:  ## fast test suite (CI)
+	$(PY) -m pytest -q -m "not slow"
+
+test-slow:  ## slow verification tests (mesh convergence, large rotation, extremes)
+	$(PY) -m pytest -q -m slow
+
+designs:  ## sample N designs into $(OUT)/../designs
+	$(PY) -m fea_factory.sample n=$(N) out=data/designs
+
+solve-demo:  ## solve one sampled design (NP ranks) into data/demo.h5
+	$(PY) -m fea_factory.sample n=1 out=data/demo
+	$(MPIRUN) -n $(NP) $(PY) -m fea_factory.solve design=data/demo/design_00000.json out=data/demo.h5
+
+dataset:  ## generate N episodes into OUT (JOBS in parallel, NP MPI ranks each); resumable
+	$(PY) -m fea_factory.generate n=$(N) out=$(OUT) jobs=$(JOBS) np=$(NP)
+
+validate:  ## validate every episode in OUT
+	$(PY) -m data_schema.validate $(OUT)
+
+bench-fea:  ## FEA benchmark table + plot (reports/bench_fea/)
+	$(PY) scripts/bench_fea.py --out reports/bench_fea
+
+clean:  ## remove generated data and reports (keeps .venv)
+	rm -rf data reports outputs multirun .pytest_cache
