@@ -65,3 +65,12 @@ def rollout(model: Simulator, source, steps: int = 10, t: np.ndarray | None = No
         pts = rebuild_all_points(js, bs)
     return Rollout(t=t, joint_states=js.numpy(), beam_states=bs.numpy(), points=pts.numpy() + f.origin,
                    point_nodes=f.point_nodes, origin=f.origin, features=f)
+
+
+def reference(source) -> Rollout:
+    """The FEA episode itself as a Rollout (its features per frame and the points they rebuild): the
+    representation's floor for errors, and a known-good input for validity checks."""
+    f = as_features(source)
+    pts = rebuild_all_points(f.joint_state.astype(np.float64), f.beam_state.astype(np.float64))
+    return Rollout(t=f.t, joint_states=f.joint_state, beam_states=f.beam_state, points=pts + f.origin,
+                   point_nodes=f.point_nodes, origin=f.origin, features=f)

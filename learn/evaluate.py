@@ -1,0 +1,181 @@
+"""Evaluate a trained simulator against FEA on a held-out split: `.venv/bin/python -m learn.evaluate` (conf/evaluate.yaml).
+
+Writes report.json (machine-readable), report.md (table) and plots into out_dir.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+
+import hydra
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from learn import checkpoint
+from learn.dataset import GraphSet, load_features
+from learn.features import EpisodeFeatures, rebuild_all_points
+from learn.model import Simulator, static_from
+from learn.rollout import reference, rollout, unroll
+from learn.validity import check
+
+log = logging.getLogger(__name__)
+
+
+def distribution(x) -> dict:
+    x = np.asarray(x, dtype=np.float64)
+    if len(x) == 0:
+        return {"median": None, "p95": None, "worst": None, "n": 0}
+    return {"median": float(np.median(x)), "p95": float(np.percentile(x, 95)), "worst": float(x.max()),
+            "n": int(len(x))}
+
+
+def with_families(values: list[float], families: list[str]) -> dict:
+    out = distribution(values)
+    out["per_family"] = {fam: distribution([v for v, f in zip(values, families) if f == fam])
+                         for fam in sorted(set(families))}
+    return out
+
+
+def time_rollout(model: Simulator, f: EpisodeFeatures, repeats: int) -> float:
+    """Median wall time (s) of one design's rollout from its initial graph to rebuilt points, one design at a time."""
+    static = static_from(f.joint_bc, f.beam_bc, f.incidence)
+    j0, b0 = torch.as_tensor(f.joint_state[0]), torch.as_tensor(f.beam_state[0])
+    t = torch.as_tensor(f.t, dtype=torch.float32)
+    times = []
+    with torch.inference_mode():
+        for _ in range(repeats + 1):  # the first run warms up
+            start = time.perf_counter()
+            js, bs = unroll(model, j0, b0, static, t)
+            rebuild_all_points(js, bs)
+            times.append(time.perf_counter() - start)
+    return float(np.median(times[1:]))
+
+
+def time_batched(model: Simulator, items: list[EpisodeFeatures], repeats: int) -> float:
+    """Wall time (s) per design when all designs roll out together as one graph."""
+    data = GraphSet.build(items)
+    times = []
+    with torch.inference_mode():
+        for _ in range(repeats + 1):
+            start = time.perf_counter()
+            js, bs = unroll(model, data.joint_state[0], data.beam_state[0], data.static, data.t)
+            rebuild_all_points(js, bs)
+            times.append(time.perf_counter() - start)
+    return float(np.median(times[1:])) / len(items)
+
+
+def evaluate(cfg: DictConfig) -> dict:
+    torch.set_num_threads(int(cfg.threads))
+    ckpt = checkpoint.load(cfg.checkpoint)
+    model = checkpoint.model_from(ckpt)
+    data_dir = Path(cfg.data_dir or ckpt["config"]["data_dir"])
+    names = ckpt["split"][cfg.split]
+    if not names:
+        raise ValueError(f"split {cfg.split!r} of {cfg.checkpoint} is empty")
+    features = load_features([data_dir / n for n in names])
+    out_dir = Path(cfg.out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+    designs, rollouts = [], []
+    for f in features:
+        r = rollout(model, f, steps=f.n_frames - 1, t=f.t)
+        err = np.linalg.norm(r.local_points - f.fea_points, axis=-1)  # [F, P]
+        floor = np.linalg.norm(reference(f).local_points - f.fea_points, axis=-1)
+        verdict = check(model, r, **OmegaConf.to_container(cfg.validity))
+        designs.append({
+            "name": f.name, "family": f.family, "design_size_mm": f.design_size,
+            "max_rel_error": float(err.max() / f.design_size), "mean_rel_error": float(err.mean() / f.design_size),
+            "max_error_mm": float(err.max()),
+            "max_rel_error_per_frame": (err.max(axis=1) / f.design_size).tolist(),
+            "mean_rel_error_per_frame": (err.mean(axis=1) / f.design_size).tolist(),
+            "representation_floor": float(floor.max() / f.design_size),
+            "fea_s": f.fea_seconds, "valid": verdict.valid, "validity": verdict.as_dict()})
+        rollouts.append(r)
+
+    per_design_s = [time_rollout(model, f, int(cfg.timing_repeats)) for f in features]
+    rollout_s = float(np.median(per_design_s))
+    batched_s = time_batched(model, features, int(cfg.timing_repeats))
+    fea_s = float(np.nanmean([f.fea_seconds for f in features])) if any(
+        np.isfinite(f.fea_seconds) for f in features) else float("nan")
+    fams = [d["family"] for d in designs]
+    report = {
+        "n_designs": len(designs),
+        "max_rel_error": with_families([d["max_rel_error"] for d in designs], fams),
+        "mean_rel_error": with_families([d["mean_rel_error"] for d in designs], fams),
+        "representation_floor": distribution([d["representation_floor"] for d in designs]),
+        "rollout_ms_per_design": 1e3 * rollout_s,
+        "rollout_ms_per_design_batched": 1e3 * batched_s,
+        "fea_s_per_episode": fea_s,
+        "speedup": fea_s / rollout_s,
+        "speedup_batched": fea_s / batched_s,
+        "n_invalid": int(sum(not d["valid"] for d in designs)),
+        "threads": int(cfg.threads),
+        "steps": int(features[0].n_frames - 1),
+        "checkpoint": str(cfg.checkpoint), "split": cfg.split, "data_dir": str(data_dir),
+        "model": {k: v for k, v in model.args.items() if k != "pca"}, "n_parameters": model.n_parameters,
+        "timing": "median wall time of one design's rollout (initial graph -> rebuilt points of every frame) "
+                  "on `threads` CPU threads; FEA time: mean of the episodes' provenance wall_s.total",
+        "validity_thresholds": OmegaConf.to_container(cfg.validity),
+        "designs": designs,
+    }
+    (out_dir / "report.json").write_text(json.dumps(finite_or_null(report), indent=1, allow_nan=False))
+    (out_dir / "report.md").write_text(markdown(report))
+    if cfg.plots:
+        from learn.plots import plot_report
+        plot_report(report, rollouts, out_dir)
+    log.info("\n%s", markdown(report, with_designs=False))
+    return report
+
+
+def finite_or_null(x):
+    """NaN/inf -> None throughout, so the report is strict JSON."""
+    if isinstance(x, dict):
+        return {k: finite_or_null(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [finite_or_null(v) for v in x]
+    if isinstance(x, float) and not np.isfinite(x):
+        return None
+    return x
+
+
+def _pct(x) -> str:
+    return "-" if x is None else f"{100 * x:.2f}%"
+
+
+def markdown(report: dict, with_designs: bool = True) -> str:
+    m = report["max_rel_error"]
+    lines = [
+        f"# Learned rollout vs FEA ({report['n_designs']} designs, split {report['split']})", "",
+        "| | median | p95 | worst | n |", "|---|---|---|---|---|",
+        f"| max error / design size | {_pct(m['median'])} | {_pct(m['p95'])} | {_pct(m['worst'])} | {m['n']} |",
+        *(f"| ... {fam} | {_pct(d['median'])} | {_pct(d['p95'])} | {_pct(d['worst'])} | {d['n']} |"
+          for fam, d in m["per_family"].items()),
+        f"| mean error / design size | {_pct(report['mean_rel_error']['median'])} | "
+        f"{_pct(report['mean_rel_error']['p95'])} | {_pct(report['mean_rel_error']['worst'])} | |",
+        f"| representation floor | {_pct(report['representation_floor']['median'])} | "
+        f"{_pct(report['representation_floor']['p95'])} | {_pct(report['representation_floor']['worst'])} | |",
+        "",
+        f"rollout {report['rollout_ms_per_design']:.2f} ms/design ({report['threads']} thread), batched "
+        f"{report['rollout_ms_per_design_batched']:.3f} ms/design; FEA {report['fea_s_per_episode']:.3g} s/episode; "
+        f"speed-up {report['speedup']:.3g}x (batched {report['speedup_batched']:.3g}x); "
+        f"{report['n_invalid']} rollouts flagged invalid",
+    ]
+    if with_designs:
+        lines += ["", "| design | family | size mm | max err | mean err | floor | valid |", "|---|---|---|---|---|---|---|"]
+        for d in sorted(report["designs"], key=lambda d: d["max_rel_error"]):
+            lines.append(f"| {d['name']} | {d['family']} | {d['design_size_mm']:.1f} | {_pct(d['max_rel_error'])} | "
+                         f"{_pct(d['mean_rel_error'])} | {_pct(d['representation_floor'])} | "
+                         f"{'yes' if d['valid'] else 'NO: ' + '; '.join(d['validity']['reasons'])} |")
+    return "\n".join(lines) + "\n"
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")
+def main(cfg: DictConfig) -> None:
+    evaluate(cfg)
+
+
+if __name__ == "__main__":
+    main()

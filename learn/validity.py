@@ -1,0 +1,80 @@
+"""Validity of a learned rollout: flag results that should not be presented as answers.
+
+Two symptoms, both measurable without FEA:
+- dislocation: a beam's end cross-section and its joint each rebuild the shared interface nodes; when the two
+  predictions drift apart the blocks no longer form one solid;
+- out of range: a block's PCA coefficients leave the range seen in training (widened by a margin), so the
+  networks extrapolate.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from learn.features import shared_point_pairs
+from learn.model import Simulator, static_from
+from learn.rollout import Rollout
+
+
+@dataclass
+class Verdict:
+    valid: bool
+    reasons: list[str] = field(default_factory=list)
+    max_dislocation_mm: float = 0.0  # largest distance between two predictions of one interface node
+    dislocation_per_frame: list[float] = field(default_factory=list)
+    out_of_range_fraction: float = 0.0  # of (frame, block) pairs with a coefficient outside the training range
+    first_bad_frame: int | None = None
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+def dislocation(r: Rollout) -> np.ndarray:
+    """[F] max distance (mm) between the joint's and the beam's prediction of the same interface node."""
+    pairs = shared_point_pairs(r.point_nodes)
+    if len(pairs) == 0:
+        return np.zeros(r.n_frames)
+    return np.linalg.norm(r.points[:, pairs[:, 0]] - r.points[:, pairs[:, 1]], axis=-1).max(axis=1)
+
+
+def out_of_range(model: Simulator, r: Rollout, margin: float) -> np.ndarray:
+    """[F] fraction of blocks with any PCA coefficient outside the training range widened by `margin`."""
+    f = r.features
+    static = static_from(f.joint_bc, f.beam_bc, f.incidence)
+    with torch.inference_mode():
+        z = model.coefficients(torch.as_tensor(r.joint_states, dtype=torch.float32),
+                               torch.as_tensor(r.beam_states, dtype=torch.float32), static)
+        joint_bad = torch.zeros(r.joint_states.shape[:2], dtype=torch.bool)
+        beam_bad = torch.zeros(r.beam_states.shape[:2], dtype=torch.bool)
+        for term, coeffs in z.items():
+            bad = model.pca[term].outside(coeffs, margin).any(-1) | ~torch.isfinite(coeffs).all(-1)
+            if term.startswith("joint"):
+                joint_bad |= bad
+            else:
+                beam_bad |= bad
+    return torch.cat([joint_bad, beam_bad], 1).float().mean(1).numpy()
+
+
+def check(model: Simulator, r: Rollout, max_dislocation_mm: float = 1.0, range_margin: float = 0.25,
+          max_out_of_range: float = 0.0) -> Verdict:
+    """Verdict on one rollout; invalid when any frame breaks a threshold or any value is not finite."""
+    reasons = []
+    finite = np.isfinite(r.points).all(axis=(1, 2))
+    disl = np.where(finite, dislocation(r), np.inf)
+    oor = np.where(finite, out_of_range(model, r, range_margin), 1.0)
+    bad = (disl > max_dislocation_mm) | (oor > max_out_of_range) | ~finite
+    if not finite.all():
+        reasons.append(f"non-finite points from frame {int(np.argmin(finite))}")
+    if (disl > max_dislocation_mm).any():
+        k = int(np.argmax(disl > max_dislocation_mm))
+        reasons.append(f"beam/joint faces dislocated by {disl[k]:.3g} mm at frame {k} "
+                       f"(limit {max_dislocation_mm} mm)")
+    if (oor > max_out_of_range).any():
+        k = int(np.argmax(oor > max_out_of_range))
+        reasons.append(f"{100 * oor[k]:.0f}% of blocks outside the training feature range at frame {k} "
+                       f"(margin {range_margin} of the range)")
+    return Verdict(valid=not bad.any(), reasons=reasons, max_dislocation_mm=float(disl.max()),
+                   dislocation_per_frame=[float(d) for d in disl], out_of_range_fraction=float(oor.max()),
+                   first_bad_frame=int(np.argmax(bad)) if bad.any() else None)

@@ -1,0 +1,97 @@
+"""learn.pca / gn / model: PCA retention and inversion, GN block shapes and permutation equivariance."""
+import numpy as np
+import pytest
+import torch
+
+from data_schema.testing import synthetic_episode
+from learn.dataset import GraphSet, augment, split_names
+from learn.features import extract
+from learn.gn import GNBlock
+from learn.graph import BEAM, JOINT, Incidence
+from learn.model import TERMS, Simulator
+from learn.pca import Normalizer, TermPCA
+
+torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="module")
+def features():
+    return [extract(synthetic_episode(3, 3, 5, 3, 3, 5, seed=s), name=f"ep{s}.h5") for s in range(6)]
+
+
+def test_split_is_by_episode_and_pca_is_fitted_on_train_only(features):
+    split = split_names(features, {"train": 0.6, "val": 0.2, "test": 0.2}, seed=0)
+    names = [n for s in split.values() for n in s]
+    assert sorted(names) == sorted(f.name for f in features) and len(set(names)) == len(names)
+    assert all(split[s] for s in split)
+    by_name = {f.name: f for f in features}
+    train = GraphSet.build(augment([by_name[n] for n in split["train"]], rotations=4, seed=0))
+    assert len(train) == 4 * len(split["train"])
+    x = train.joint_state.reshape(-1, JOINT.state_size)[:, JOINT.stress_slice].numpy()
+    pca = TermPCA.fit(x, retention=0.98)
+    assert float(pca.explained) >= 0.98 and pca.k < x.shape[1]
+    # statistics come from the training rows only: the mean equals theirs
+    assert np.allclose(pca.mean.numpy(), x.mean(axis=0), atol=1e-6)
+    z = pca(torch.as_tensor(x))
+    assert torch.all(z >= pca.lo - 1e-5) and torch.all(z <= pca.hi + 1e-5)
+    back = pca.inverse(z).numpy()
+    rel = np.linalg.norm(back - x) / np.linalg.norm(x - x.mean(axis=0))
+    assert rel < np.sqrt(0.02) + 1e-6  # at most the discarded 2 % of the variance
+
+
+def test_pca_keeps_a_rare_flag_column():
+    rng = np.random.default_rng(0)
+    x = np.concatenate([(rng.random((900, 1)) < 0.1).astype(float), 50 * rng.normal(size=(900, 3))], axis=1)
+    pca = TermPCA.fit(x, 0.98)
+    back = pca.inverse(pca(torch.as_tensor(x, dtype=torch.float32))).numpy()
+    assert np.abs(back[:, 0] - x[:, 0]).max() < 1e-3
+
+
+def test_normalizer_floor():
+    x = np.stack([np.zeros(10), np.arange(10.0)], axis=1)
+    n = Normalizer.fit(x, floor=0.1)
+    assert n.std[0] > 0 and torch.allclose(n.inverse(n(torch.as_tensor(x, dtype=torch.float32))),
+                                           torch.as_tensor(x, dtype=torch.float32))
+
+
+def _random_graph(seed=0):
+    g = torch.Generator().manual_seed(seed)
+    beams = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [0, 2]])
+    inc = Incidence.from_beams(beams, 4)
+    return inc, torch.randn(2, 4, 5, generator=g), torch.randn(2, 5, 7, generator=g), torch.randn(2, 10, 3, generator=g)
+
+
+def test_gn_block_shapes_and_permutation_equivariance():
+    torch.manual_seed(0)
+    inc, xj, xb, xe = _random_graph()
+    gn = GNBlock(joint_in=5, beam_in=7, edge_in=3, latent=8, widths=[16, 12], joint_out=4, beam_out=6)
+    oj, ob = gn(xj, xb, xe, inc.tensors())
+    assert oj.shape == (2, 4, 4) and ob.shape == (2, 5, 6)
+    pj, pb = np.array([2, 0, 3, 1]), np.array([4, 2, 0, 1, 3])  # new joint n is old pj[n]; new beam b is old pb[b]
+    old_to_new = np.argsort(pj)
+    beams = np.stack([inc.senders[:5], inc.receivers[:5]], 1)
+    inc2 = Incidence.from_beams(old_to_new[beams[pb]], 4)
+    edge_perm = np.concatenate([pb, pb + 5])
+    oj2, ob2 = gn(xj[:, pj], xb[:, pb], xe[:, edge_perm], inc2.tensors())
+    assert torch.allclose(oj2, oj[:, pj], atol=1e-5) and torch.allclose(ob2, ob[:, pb], atol=1e-5)
+
+
+@pytest.mark.parametrize("core", ["single_gn", "double_gn"])
+def test_simulator_step_shapes(features, core):
+    data = GraphSet.build(features[:2])
+    model = Simulator.fit({"core": core, "latent": 8, "widths": [16, 8], "time_input": True},
+                          data.joint_state, data.beam_state, data.static)
+    assert set(model.pca) == set(TERMS)
+    j, b = model.step(data.joint_state[:3], data.beam_state[:3], data.static, data.t[:3])
+    assert j.shape == data.joint_state[:3].shape and b.shape == data.beam_state[:3].shape
+    assert torch.isfinite(j).all() and torch.isfinite(b).all()
+    # translation invariance of the update: shifting every point field leaves dG unchanged
+    shift = torch.tensor([5.0, -3.0, 1.0])
+    js, bs = data.joint_state[:3].clone(), data.beam_state[:3].clone()
+    for sl in JOINT.geometry.slices("point"):
+        js[..., sl] += shift
+    for sl in BEAM.geometry.slices("point"):
+        bs[..., sl] += shift
+    d1 = model(data.joint_state[:3], data.beam_state[:3], data.static, data.t[:3])
+    d2 = model(js, bs, data.static, data.t[:3])
+    assert torch.allclose(d1[0], d2[0], atol=1e-4) and torch.allclose(d1[1], d2[1], atol=1e-4)

@@ -1,0 +1,152 @@
+"""learn.train / rollout / evaluate / validity end to end on tiny synthetic episodes (Hydra compose API)."""
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from data_schema.episode import write_episode
+from data_schema.testing import synthetic_episode
+from learn import checkpoint
+from learn.evaluate import evaluate
+from learn.dataset import augment, load_features
+from learn.features import rebuild_all_points
+from learn.graph import BEAM
+from learn.rollout import reference, rollout
+from learn.train import train
+from learn.validity import check
+
+torch.set_num_threads(1)
+CONF = str(Path(__file__).resolve().parents[1] / "conf")
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("episodes")
+    for s in range(4):
+        write_episode(d / f"ep{s:03d}.h5", synthetic_episode(3, 3, 5, 3, 3, frames=11, seed=s))
+    return d
+
+
+def cfg_for(name, overrides):
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        return compose(config_name=name, overrides=overrides)
+
+
+def tiny(data_dir, run_dir, *extra):
+    return [f"data_dir={data_dir}", f"run_dir={run_dir}", "model.latent=16", "model.widths=[32,16]",
+            "rotations=2", "patience=100", "log_every=100", "threads=1",
+            "split.train=0.5", "split.val=0.25", "split.test=0.25", *extra]
+
+
+@pytest.fixture(scope="module")
+def trained(data_dir, tmp_path_factory):
+    run = tmp_path_factory.mktemp("run")
+    summary = train(cfg_for("train", tiny(data_dir, run, "epochs=16", "monitor=val_loss", "optim.lr=3e-3",
+                                                "optim.lr_drop_at=0.75", "batch_size=1")))
+    return run, summary
+
+
+def test_training_reduces_loss_and_writes_a_weights_only_checkpoint(trained):
+    run, summary = trained
+    ckpt = torch.load(run / "last.pt", weights_only=True)
+    hist = ckpt["history"]
+    assert len(hist) == 16 and hist[-1]["train_loss"] < 0.8 * hist[0]["train_loss"]
+    assert ckpt["finished"] and summary["epochs_run"] == 16
+    assert set(ckpt["split"]) == {"train", "val", "test"} and ckpt["config"]["model"]["latent"] == 16
+    assert any(k.startswith("pca.beam_stress.") for k in ckpt["state_dict"])  # PCA travels with the model
+    model = checkpoint.load_model(run / "best.pt")
+    assert model.args["core"] == "double_gn"
+
+
+def test_training_resumes_from_the_last_checkpoint(data_dir, tmp_path):
+    train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=3")))
+    last = checkpoint.load(tmp_path / "last.pt")
+    assert last["epoch"] == 2
+    summary = train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=5")))  # a longer run picks up at epoch 3
+    # a finished run is not restarted: it stays finished, so mark it unfinished to simulate an interruption
+    assert summary["epochs_run"] == 3
+    last["finished"] = False
+    torch.save(last, tmp_path / "last.pt")
+    summary = train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=5")))
+    resumed = checkpoint.load(tmp_path / "last.pt")
+    assert summary["epochs_run"] == 5 and [h["epoch"] for h in resumed["history"]] == [0, 1, 2, 3, 4]
+
+
+def test_rollout_returns_every_frame_of_finite_points(trained, data_dir):
+    run, _ = trained
+    model = checkpoint.load_model(run / "best.pt")
+    ep = synthetic_episode(3, 3, 5, 3, 3, frames=11, seed=9)
+    r = rollout(model, ep, steps=10)
+    assert r.n_frames == 11 and r.points.shape == (11, len(r.point_nodes), 3) and np.isfinite(r.points).all()
+    assert np.allclose(r.points[0], ep.node_xyz[0, r.point_nodes], atol=1e-3)  # frame 0 is the design itself
+    assert r.graph(10)[1].shape == (len(ep.beams), BEAM.state_size)
+
+
+def test_validity_passes_a_clean_rollout_and_flags_a_corrupted_one(trained, data_dir):
+    run, _ = trained
+    ckpt = checkpoint.load(run / "best.pt")
+    model = checkpoint.model_from(ckpt)
+    cfg = ckpt["config"]
+    train_items = augment(load_features([data_dir / n for n in ckpt["split"]["train"]]), cfg["rotations"], cfg["seed"])
+    clean = reference(train_items[0])  # FEA of a training item: interfaces closed, features in range
+    ok = check(model, clean, max_dislocation_mm=1.0, range_margin=0.25)
+    assert ok.valid, ok.reasons
+    torn = reference(train_items[0])
+    torn.beam_states = torn.beam_states.copy()
+    torn.beam_states[6:, 3, BEAM.geometry.slice("start_center")] += np.float32(4.0)  # tear beam 3 off its joint
+    torn.points = rebuild_all_points(torn.joint_states.astype(float), torn.beam_states.astype(float)) + torn.origin
+    bad = check(model, torn, max_dislocation_mm=1.0, range_margin=0.25)
+    assert not bad.valid and bad.first_bad_frame == 6 and "dislocated" in " ".join(bad.reasons)
+    wild = reference(train_items[0])
+    wild.joint_states = wild.joint_states * np.float32(50.0)  # a blown-up state, interfaces not checked
+    wild_verdict = check(model, wild, max_dislocation_mm=1e9)
+    assert not wild_verdict.valid and "training feature range" in " ".join(wild_verdict.reasons)
+
+
+def test_evaluate_writes_the_report(trained, tmp_path):
+    run, _ = trained
+    report = evaluate(cfg_for("evaluate", [f"checkpoint={run / 'best.pt'}", f"out_dir={tmp_path}",
+                                           "timing_repeats=1"]))
+    on_disk = json.loads((tmp_path / "report.json").read_text())
+    for key in ("n_designs", "max_rel_error", "rollout_ms_per_design", "fea_s_per_episode", "speedup"):
+        assert key in on_disk
+    for key in ("median", "p95", "worst", "per_family"):
+        assert key in on_disk["max_rel_error"]
+    assert on_disk["n_designs"] == report["n_designs"] >= 1
+    assert "synthetic" in on_disk["max_rel_error"]["per_family"]
+    assert len(on_disk["designs"][0]["max_rel_error_per_frame"]) == 11
+    assert (tmp_path / "report.md").exists() and (tmp_path / "error_vs_step.png").stat().st_size > 0
+    assert (tmp_path / "overlay_best_median_worst.png").exists()
+
+
+@pytest.mark.parametrize("model_name", ["single_gn", "double_gn"])
+def test_every_model_config_composes_and_trains(data_dir, tmp_path, model_name):
+    cfg = cfg_for("train", [f"model={model_name}"] + tiny(data_dir, tmp_path, "epochs=1", "rollout_horizon=3",
+                                                         "noise_std=0.1", "batch_size=1"))
+    assert cfg.model.core == model_name
+    assert train(cfg)["core"] == model_name
+
+
+def test_sweep_appends_one_row_per_run(data_dir, tmp_path):
+    cmd = [sys.executable, "-m", "learn.train", "-m", "+sweep=grid", f"data_dir={data_dir}", "epochs=1",
+           "rotations=1", "threads=1", f"hydra.sweep.dir={tmp_path}", f"run_dir={tmp_path}/" + "${hydra:job.num}",
+           f"results_csv={tmp_path}/results.csv", "hydra.sweeper.params={model.latent: '8,16', model.widths: '[16]'}"]
+    out = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    rows = list(csv.DictReader((tmp_path / "results.csv").open()))
+    assert [r["latent"] for r in rows] == ["8", "16"] and all(r["best_val_rollout"] for r in rows)
+
+
+def test_learn_imports_without_dolfinx_or_gmsh():
+    code = ("import sys; sys.modules['dolfinx'] = None; sys.modules['gmsh'] = None\n"
+            "import learn, learn.train, learn.evaluate, learn.rollout, learn.validity, learn.plots\n"
+            "assert 'fea_factory' not in sys.modules, 'learn must not import fea_factory'")
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
