@@ -18,7 +18,7 @@ from learn import checkpoint
 from learn.dataset import GraphSet, load_features
 from learn.features import EpisodeFeatures, rebuild_all_points
 from learn.model import Simulator, static_from
-from learn.rollout import reference, rollout, unroll
+from learn.rollout import compile_rollout, graph_inputs, reference, rollout, unroll
 from learn.validity import check
 
 log = logging.getLogger(__name__)
@@ -39,32 +39,45 @@ def with_families(values: list[float], families: list[str]) -> dict:
     return out
 
 
-def time_rollout(model: Simulator, f: EpisodeFeatures, repeats: int) -> float:
-    """Median wall time (s) of one design's rollout from its initial graph to rebuilt points, one design at a time."""
-    static = static_from(f.joint_bc, f.beam_bc, f.incidence)
-    j0, b0 = torch.as_tensor(f.joint_state[0]), torch.as_tensor(f.beam_state[0])
-    t = torch.as_tensor(f.t, dtype=torch.float32)
-    times = []
-    with torch.inference_mode():
-        for _ in range(repeats + 1):  # the first run warms up
-            start = time.perf_counter()
-            js, bs = unroll(model, j0, b0, static, t)
-            rebuild_all_points(js, bs)
-            times.append(time.perf_counter() - start)
-    return float(np.median(times[1:]))
-
-
-def time_batched(model: Simulator, items: list[EpisodeFeatures], repeats: int) -> float:
-    """Wall time (s) per design when all designs roll out together as one graph."""
-    data = GraphSet.build(items)
+def median_seconds(fn, repeats: int) -> float:
+    """Median wall time of fn() over `repeats` calls after one warm-up call."""
     times = []
     with torch.inference_mode():
         for _ in range(repeats + 1):
             start = time.perf_counter()
-            js, bs = unroll(model, data.joint_state[0], data.beam_state[0], data.static, data.t)
-            rebuild_all_points(js, bs)
+            fn()
             times.append(time.perf_counter() - start)
-    return float(np.median(times[1:])) / len(items)
+    return float(np.median(times[1:]))
+
+
+def eager_rollout(model: Simulator, f: EpisodeFeatures):
+    """One design's rollout from its initial graph to the rebuilt points of every frame, eager PyTorch."""
+    static = static_from(f.joint_bc, f.beam_bc, f.incidence)
+    j0, b0 = torch.as_tensor(f.joint_state[0]), torch.as_tensor(f.beam_state[0])
+    t = torch.as_tensor(f.t, dtype=torch.float32)
+    return lambda: rebuild_all_points(*unroll(model, j0, b0, static, t))
+
+
+def timings(model: Simulator, features: list[EpisodeFeatures], repeats: int) -> dict:
+    """Seconds per design: one design at a time (compiled and eager) and all designs as one batched graph."""
+    start = time.perf_counter()
+    compiled = compile_rollout(model, features[0])
+    compile_s = time.perf_counter() - start
+    with torch.inference_mode():
+        for f in features:  # the compiled rollout must give the eager numbers
+            got = compiled(*graph_inputs(f))[2].numpy()
+            want = eager_rollout(model, f)().numpy()
+            if not np.allclose(got, want, atol=1e-3 + 1e-5 * np.abs(want).max()):
+                raise RuntimeError(f"compiled rollout differs from eager on {f.name}")
+    batch = GraphSet.build(features)
+    batched = lambda: rebuild_all_points(*unroll(model, batch.joint_state[0], batch.beam_state[0],  # noqa: E731
+                                                 batch.static, batch.t))
+    return {
+        "compiled": float(np.median([median_seconds(lambda: compiled(*graph_inputs(f)), repeats) for f in features])),
+        "eager": float(np.median([median_seconds(eager_rollout(model, f), repeats) for f in features])),
+        "batched": median_seconds(batched, repeats) / len(features),
+        "compile": compile_s,
+    }
 
 
 def evaluate(cfg: DictConfig) -> dict:
@@ -95,9 +108,8 @@ def evaluate(cfg: DictConfig) -> dict:
             "fea_s": f.fea_seconds, "valid": verdict.valid, "validity": verdict.as_dict()})
         rollouts.append(r)
 
-    per_design_s = [time_rollout(model, f, int(cfg.timing_repeats)) for f in features]
-    rollout_s = float(np.median(per_design_s))
-    batched_s = time_batched(model, features, int(cfg.timing_repeats))
+    times = timings(model, features, int(cfg.timing_repeats))
+    rollout_s, batched_s = times["compiled"], times["batched"]
     fea_s = float(np.nanmean([f.fea_seconds for f in features])) if any(
         np.isfinite(f.fea_seconds) for f in features) else float("nan")
     fams = [d["family"] for d in designs]
@@ -107,7 +119,9 @@ def evaluate(cfg: DictConfig) -> dict:
         "mean_rel_error": with_families([d["mean_rel_error"] for d in designs], fams),
         "representation_floor": distribution([d["representation_floor"] for d in designs]),
         "rollout_ms_per_design": 1e3 * rollout_s,
+        "rollout_ms_per_design_eager": 1e3 * times["eager"],
         "rollout_ms_per_design_batched": 1e3 * batched_s,
+        "compile_s": times["compile"],
         "fea_s_per_episode": fea_s,
         "speedup": fea_s / rollout_s,
         "speedup_batched": fea_s / batched_s,
@@ -116,8 +130,10 @@ def evaluate(cfg: DictConfig) -> dict:
         "steps": int(features[0].n_frames - 1),
         "checkpoint": str(cfg.checkpoint), "split": cfg.split, "data_dir": str(data_dir),
         "model": {k: v for k, v in model.args.items() if k != "pca"}, "n_parameters": model.n_parameters,
-        "timing": "median wall time of one design's rollout (initial graph -> rebuilt points of every frame) "
-                  "on `threads` CPU threads; FEA time: mean of the episodes' provenance wall_s.total",
+        "timing": "rollout_ms_per_design: median over designs of the median wall time of one design's rollout "
+                  "(initial graph -> rebuilt points of every frame), TorchScript-compiled once per model (compile_s), "
+                  "on `threads` CPU threads; _eager: plain PyTorch; _batched: all designs as one graph. "
+                  "FEA: mean of the episodes' provenance wall_s.total",
         "validity_thresholds": OmegaConf.to_container(cfg.validity),
         "designs": designs,
     }
@@ -158,7 +174,8 @@ def markdown(report: dict, with_designs: bool = True) -> str:
         f"| representation floor | {_pct(report['representation_floor']['median'])} | "
         f"{_pct(report['representation_floor']['p95'])} | {_pct(report['representation_floor']['worst'])} | |",
         "",
-        f"rollout {report['rollout_ms_per_design']:.2f} ms/design ({report['threads']} thread), batched "
+        f"rollout {report['rollout_ms_per_design']:.2f} ms/design ({report['threads']} thread; eager "
+        f"{report['rollout_ms_per_design_eager']:.2f} ms), batched "
         f"{report['rollout_ms_per_design_batched']:.3f} ms/design; FEA {report['fea_s_per_episode']:.3g} s/episode; "
         f"speed-up {report['speedup']:.3g}x (batched {report['speedup_batched']:.3g}x); "
         f"{report['n_invalid']} rollouts flagged invalid",

@@ -41,7 +41,7 @@ class GNBlock(nn.Module):
         # joints [..., J, Dj], beams [..., B, Db], edges [..., E, De] -> [..., J, joint_out], [..., B, beam_out]
         pair = torch.cat([beams.index_select(-2, g.edge_beam), joints.index_select(-2, g.senders),
                           joints.index_select(-2, g.receivers), edges], dim=-1)  # [..., E, P]
-        to_joints = sum_to(self.joint_interaction(pair), g.receivers, g.n_joints)  # [..., J, latent]
-        to_beams = sum_to(self.beam_interaction(pair), g.edge_beam, g.n_beams)  # [..., B, latent]
+        to_joints = sum_to(self.joint_interaction(pair), g.receivers, joints.shape[-2])  # [..., J, latent]
+        to_beams = sum_to(self.beam_interaction(pair), g.edge_beam, beams.shape[-2])  # [..., B, latent]
         return (self.joint_update(torch.cat([joints, to_joints], dim=-1)),
                 self.beam_update(torch.cat([beams, to_beams], dim=-1)))

@@ -52,15 +52,18 @@ class Static:
 
 
 def _point_mask(block: Block) -> torch.Tensor:
-    """[n_fields] 1.0 for point fields of the geometry term (every geometry field is 3 wide)."""
+    """[n_fields, 1] 1.0 for point fields of the geometry term (every geometry field is 3 wide)."""
     assert all(f.width == 3 for f in block.geometry.fields)
-    return torch.tensor([1.0 if f.kind == "point" else 0.0 for f in block.geometry.fields])
+    return torch.tensor([[1.0 if f.kind == "point" else 0.0] for f in block.geometry.fields])
+
+
+POINT_MASK = {JOINT.name: _point_mask(JOINT), BEAM.name: _point_mask(BEAM)}
 
 
 def local_geometry(geometry: torch.Tensor, block: Block) -> torch.Tensor:
     """[..., n, G] geometry with every point relative to the block's own origin point."""
     origin = geometry[..., block.origin_slice]
-    fields = geometry.unflatten(-1, (-1, 3)) - _point_mask(block).to(geometry)[:, None] * origin[..., None, :]
+    fields = geometry.unflatten(-1, (-1, 3)) - POINT_MASK[block.name].to(geometry) * origin[..., None, :]
     return fields.flatten(-2)
 
 
@@ -112,7 +115,8 @@ class Simulator(nn.Module):
         parts_j = [z[k].expand(*lead, *z[k].shape[-2:]) for k in TERMS[:3]]
         parts_b = [z[k].expand(*lead, *z[k].shape[-2:]) for k in TERMS[3:]]
         if self.args.get("time_input", True):
-            t = torch.as_tensor(t, dtype=joint_state.dtype).expand(lead).reshape(*lead, 1, 1)
+            t = (t if isinstance(t, torch.Tensor) else torch.tensor(t)).to(joint_state.dtype)
+            t = t.expand(lead).reshape(*lead, 1, 1)
             parts_j.append(t.expand(*lead, joint_state.shape[-2], 1))
             parts_b.append(t.expand(*lead, beam_state.shape[-2], 1))
         edges = self.edge_norm(self.edge_features(joint_state, beam_state, static.index))

@@ -1,12 +1,14 @@
 """Rollout: advance a design's initial graph step by step and rebuild points comparable to the FEA nodes."""
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from learn.features import EpisodeFeatures, extract, rebuild_all_points
+from learn.graph import GraphIndex
 from learn.model import Simulator, Static, static_from
 
 
@@ -19,6 +21,35 @@ def unroll(model: Simulator, joint_state: torch.Tensor, beam_state: torch.Tensor
         joints.append(j)
         beams.append(b)
     return torch.stack(joints), torch.stack(beams)
+
+
+class _Unroll(torch.nn.Module):
+    """unroll + rebuild_all_points with the graph passed as tensors, so one trace serves every graph size."""
+
+    def __init__(self, model: Simulator):
+        super().__init__()
+        self.model = model
+
+    def forward(self, joint_state, beam_state, joint_bc, beam_bc, senders, receivers, edge_beam, t):
+        index = GraphIndex(senders, receivers, edge_beam, joint_state.shape[-2], beam_state.shape[-2])
+        js, bs = unroll(self.model, joint_state, beam_state, Static(joint_bc, beam_bc, index), t)
+        return js, bs, rebuild_all_points(js, bs)
+
+
+def graph_inputs(f: EpisodeFeatures) -> tuple[torch.Tensor, ...]:
+    """The positional inputs of a compiled rollout for one design (frame 0 and the frame times)."""
+    s = static_from(f.joint_bc, f.beam_bc, f.incidence)
+    return (torch.as_tensor(f.joint_state[0]), torch.as_tensor(f.beam_state[0]), s.joint_bc, s.beam_bc,
+            s.index.senders, s.index.receivers, s.index.edge_beam, torch.as_tensor(f.t, dtype=torch.float32))
+
+
+def compile_rollout(model: Simulator, example: EpisodeFeatures) -> torch.jit.ScriptModule:
+    """A TorchScript rollout (traced on `example`, frozen): any graph, as many steps as `example` has frames - 1.
+    Same numbers as the eager rollout, a fraction of the Python overhead per step."""
+    with torch.inference_mode(False), torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore", torch.jit.TracerWarning)  # the step count and constant matrices are meant
+        traced = torch.jit.trace(_Unroll(model.eval()), graph_inputs(example), check_trace=False)
+        return torch.jit.optimize_for_inference(torch.jit.freeze(traced.eval()))
 
 
 @dataclass
