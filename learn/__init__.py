@@ -1,0 +1,16 @@
+"""Learned graph simulator of morphing grids (SimuLearn's Double GN): features, training, rollout, evaluation.
+
+Modules (each imports torch, numpy, h5py and data_schema only; never dolfinx, gmsh or fea_factory):
+    graph       named feature layout (Field, Term, Block: JOINT, BEAM) and beam/joint incidence
+    features    EpisodeFeatures from an episode's key tables; points rebuilt from features
+    symmetry    translation to the fixed joint, rotations about z (points, vectors, stress tensors)
+    pca         per-term PCA and normalisers (torch buffers, saved with the model)
+    gn          the GN block: interaction MLPs per directed edge, sum per receiver, update MLPs
+    model       Simulator (encoding + SingleGN | DoubleGN core), G(t+1) = G(t) + dG
+    dataset     episode files -> split by episode -> rotation augmentation -> GraphSet batches
+    metrics     multi-step loss, rollout errors relative to the design size
+    train       python -m learn.train (conf/train.yaml); checkpoint: load/save (weights_only)
+    rollout     rollout(model, episode, steps=10) -> Rollout; compile_rollout for timing/deployment
+    validity    check(model, rollout) -> Verdict (face dislocation, out-of-training-range features)
+    evaluate    python -m learn.evaluate (conf/evaluate.yaml): report.json, report.md, plots
+"""

@@ -60,6 +60,15 @@ def _point_mask(block: Block) -> torch.Tensor:
 POINT_MASK = {JOINT.name: _point_mask(JOINT), BEAM.name: _point_mask(BEAM)}
 
 
+def with_current_position(bc: torch.Tensor, state: torch.Tensor, block: Block) -> torch.Tensor:
+    """bc [n, D] with its "position" field replaced by the block's current origin point of state [..., n, S]."""
+    pos = block.bc.slice("position")
+    origin = state[..., block.origin_slice]
+    lead = origin.shape[:-1]
+    return torch.cat([bc[..., :pos.start].expand(*lead, pos.start), origin,
+                      bc[..., pos.stop:].expand(*lead, bc.shape[-1] - pos.stop)], -1)
+
+
 def local_geometry(geometry: torch.Tensor, block: Block) -> torch.Tensor:
     """[..., n, G] geometry with every point relative to the block's own origin point."""
     origin = geometry[..., block.origin_slice]
@@ -71,7 +80,9 @@ class Simulator(nn.Module):
     """States in, next states out; every statistic (PCA, normalisers) is a buffer of this module.
 
     args: core ("double_gn" | "single_gn"), latent (int), widths (list[int]), time_input (bool),
-          pca ({term: [D, K]} for every name in TERMS) -- all plain types, so they are saved in checkpoints.
+          bc_position ("reference": the boundary-condition position is the block's reference position relative
+          to the fixed joint; "current": its current one), pca ({term: [D, K]} for every name in TERMS)
+          -- all plain types, so they are saved in checkpoints.
     """
 
     def __init__(self, args: dict):
@@ -90,13 +101,17 @@ class Simulator(nn.Module):
     # ------------------------------------------------------------------------------------------- features
     def raw_terms(self, joint_state, beam_state, static: Static) -> dict[str, torch.Tensor]:
         """Every term as the PCA sees it (geometry translated to each block's own origin)."""
+        joint_bc, beam_bc = static.joint_bc, static.beam_bc
+        if self.args.get("bc_position", "reference") == "current":
+            joint_bc = with_current_position(joint_bc, joint_state, JOINT)
+            beam_bc = with_current_position(beam_bc, beam_state, BEAM)
         return {
             "joint_geometry": local_geometry(joint_state[..., JOINT.geometry_slice], JOINT),
             "joint_stress": joint_state[..., JOINT.stress_slice],
-            "joint_bc": static.joint_bc,
+            "joint_bc": joint_bc,
             "beam_geometry": local_geometry(beam_state[..., BEAM.geometry_slice], BEAM),
             "beam_stress": beam_state[..., BEAM.stress_slice],
-            "beam_bc": static.beam_bc,
+            "beam_bc": beam_bc,
         }
 
     def edge_features(self, joint_state, beam_state, g: GraphIndex) -> torch.Tensor:

@@ -23,7 +23,8 @@ LAST, BEST = "last.pt", "best.pt"
 
 def model_args(cfg_model: DictConfig) -> dict:
     return {"core": str(cfg_model.core), "latent": int(cfg_model.latent),
-            "widths": [int(w) for w in cfg_model.widths], "time_input": bool(cfg_model.time_input)}
+            "widths": [int(w) for w in cfg_model.widths], "time_input": bool(cfg_model.time_input),
+            "bc_position": str(cfg_model.get("bc_position", "reference"))}
 
 
 def learning_rate(cfg: DictConfig, epoch: int) -> float:
