@@ -238,7 +238,8 @@ def test_serial_and_two_ranks_agree(tmp_path):
     py = sys.executable
     for n, name in [(1, "serial.h5"), (2, "mpi.h5")]:
         cmd = ["mpirun", "-n", str(n), py, "-m", "fea_factory.solve", *args, f"out={tmp_path / name}"]
-        r = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+        r = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300,
+                           stdin=subprocess.DEVNULL)
         assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
         assert json.loads(r.stdout.strip().splitlines()[-1])["status"] == "ok"
     a, b = read_episode(tmp_path / "serial.h5"), read_episode(tmp_path / "mpi.h5")

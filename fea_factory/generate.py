@@ -1,0 +1,187 @@
+"""Batch dataset generation: sampled designs -> validated episode files, resumable and crash-safe.
+
+    python -m fea_factory.generate n=200 out=data/episodes jobs=2 np=1 [mesh=coarse] [seed=0]
+    python -m fea_factory.generate -m shard=0,1,2,3 n_shards=4 hydra/launcher=slurm   (a cluster)
+
+Episode i (design seed from (seed, i)) is `out/episode_<i>.h5`. Each episode is solved in its own
+`mpirun -n np` process, `jobs` of them at a time, so a crash or divergence takes down one episode only.
+An episode file that validates is skipped on a re-run; the writer is atomic (temporary name, then rename),
+so a kill at any moment leaves nothing that looks valid. Every attempt appends one JSON line to
+`out/manifest.jsonl` (episode, seed, status ok | skipped | diverged | error, reason, timings, bytes);
+diverged and failed episodes are never written as data. Shard s of n_shards takes episodes i = s mod n_shards.
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from fea_factory.design import Design
+from fea_factory.material import make_material
+from fea_factory.mesh import MeshPreset
+from fea_factory.scene import Scene
+from fea_factory.solve import EXIT_DIVERGED
+from fea_factory.solver import SolverSettings
+
+ROOT = Path(__file__).resolve().parent.parent
+SOLVE_GROUPS = ("blocks", "mesh", "material", "scene", "solver")
+
+
+class GenerateConfigError(ValueError):
+    """A generate.yaml value out of range, reported before any solve starts."""
+
+
+def episode_path(out: Path, i: int) -> Path:
+    return out / f"episode_{i:05d}.h5"
+
+
+def check_config(cfg: DictConfig) -> None:
+    """Build every physics object once, so that a bad value fails here and not after hours of solving."""
+    for key, lo in (("n", 1), ("jobs", 1), ("np", 1), ("n_shards", 1)):
+        if int(cfg[key]) < lo:
+            raise GenerateConfigError(f"{key} = {cfg[key]}: must be an integer >= {lo}")
+    if not 0 <= int(cfg.shard) < int(cfg.n_shards):
+        raise GenerateConfigError(f"shard = {cfg.shard}: must lie in [0, n_shards - 1 = {int(cfg.n_shards) - 1}]")
+    MeshPreset.from_mapping(cfg.mesh)
+    SolverSettings.from_mapping(cfg.solver)
+    make_material(cfg.material)
+    Scene.from_mapping(cfg.scene)
+
+
+def solve_overrides(task_overrides: list[str]) -> list[str]:
+    """The command-line overrides that concern the solve (conf groups and their fields), passed on."""
+    keep = []
+    for o in task_overrides:
+        key = o.lstrip("+~").split("=", 1)[0]
+        if key.split(".")[0].split("/")[0] in SOLVE_GROUPS:
+            keep.append(o)
+    return keep
+
+
+class Manifest:
+    """Append-only JSON lines, one per episode attempt; flushed and fsynced line by line."""
+
+    def __init__(self, path: Path):
+        self.path, self.lock = path, threading.Lock()
+
+    def append(self, record: dict) -> None:
+        line = json.dumps(record, sort_keys=True) + "\n"
+        with self.lock, open(self.path, "a") as f:
+            f.write(line)
+            f.flush()
+            os.fsync(f.fileno())
+
+
+def mpirun_env() -> dict:
+    """The environment for a fresh mpirun: without the variables of an MPI job we may be running inside
+    (a parent that called MPI_Init exports OMPI_*/PMIX_*, and a nested mpirun then exits silently)."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_", "OPAL_", "ORTE_"))}
+    env.update(OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1", OMP_NUM_THREADS="1")
+    return env
+
+
+def run_episode(i: int, design: Design, out: Path, cfg: DictConfig, overrides: list[str]) -> dict:
+    """Solve one design in an MPI subprocess; return its manifest record."""
+    path = episode_path(out, i)
+    design_dir = out / "designs"
+    design_dir.mkdir(exist_ok=True)
+    design_file = design_dir / f"episode_{i:05d}.json"
+    design.save(design_file)
+    env = mpirun_env()
+    cmd = ["mpirun", "-n", str(cfg.np), sys.executable, "-m", "fea_factory.solve",
+           f"design={design_file}", f"out={path}", f"seed={design.meta.get('seed', cfg.seed)}", *overrides]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, stdin=subprocess.DEVNULL)
+    wall = time.perf_counter() - t0
+    record = {"episode": i, "seed": int(cfg.seed), "design": str(design_file), "wall_s": round(wall, 3),
+              "family": design.meta.get("family"), "actuators": design.meta.get("actuators")}
+    last = proc.stdout.strip().splitlines()[-1] if proc.stdout.strip() else ""
+    try:
+        result = json.loads(last)
+    except json.JSONDecodeError:
+        result = {}
+    if proc.returncode == 0 and result.get("status") == "ok":
+        return {**record, "status": "ok", "file": str(path), "bytes": path.stat().st_size,
+                "increments": result.get("increments"), "newton": result.get("newton"),
+                "cutbacks": result.get("cutbacks"), "solve_wall_s": result.get("wall_total_s")}
+    if proc.returncode == EXIT_DIVERGED:
+        return {**record, "status": "diverged", "reason": result.get("reason"), "t": result.get("t")}
+    tail = (proc.stderr or proc.stdout)[-1500:]
+    return {**record, "status": "error", "returncode": proc.returncode, "reason": tail}
+
+
+def generate(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict:
+    """Generate the episodes of this shard; returns the summary."""
+    from tqdm import tqdm
+
+    from data_schema.validate import validate_episode
+    from fea_factory.sample import sample_designs
+
+    check_config(cfg)
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    manifest = Manifest(out / "manifest.jsonl")
+    mine = [i for i in range(int(cfg.start), int(cfg.start) + int(cfg.n)) if i % int(cfg.n_shards) == int(cfg.shard)]
+    for i in mine:  # a killed writer leaves <name>.h5.<hex>.tmp behind: ours to remove
+        for stale in out.glob(f"episode_{i:05d}.h5.*tmp"):
+            stale.unlink()
+    todo, skipped = [], 0
+    for i in mine:
+        path = episode_path(out, i)
+        if path.exists() and not validate_episode(path):
+            skipped += 1
+            continue
+        if path.exists():
+            path.unlink()  # present but invalid: solve again
+        todo.append(i)
+    overrides = solve_overrides(task_overrides or [])
+    designs = {i: sample_designs(cfg.grid, cfg.blocks, n=1, seed=int(cfg.seed), start=i)[0] for i in todo}
+    counts = {"ok": 0, "diverged": 0, "error": 0}
+    n_bytes = 0
+    t0 = time.perf_counter()
+    with ThreadPoolExecutor(max_workers=int(cfg.jobs)) as pool, \
+            tqdm(total=len(todo), desc=f"episodes (shard {cfg.shard})", unit="ep", disable=not cfg.progress) as bar:
+        futures = [pool.submit(run_episode, i, designs[i], out, cfg, overrides) for i in todo]
+        for fut in futures:
+            rec = fut.result()
+            manifest.append(rec)
+            counts[rec["status"]] += 1
+            n_bytes += rec.get("bytes", 0)
+            bar.set_postfix(ok=counts["ok"], failed=counts["diverged"] + counts["error"])
+            bar.update()
+    wall = time.perf_counter() - t0
+    summary = {"done": counts["ok"], "skipped": skipped, "diverged": counts["diverged"], "error": counts["error"],
+               "bytes": n_bytes, "bytes_per_episode": n_bytes // max(counts["ok"], 1), "wall_s": round(wall, 2),
+               "episodes_per_hour": round(3600 * counts["ok"] / wall, 1) if counts["ok"] else 0.0,
+               "jobs": int(cfg.jobs), "np": int(cfg.np), "out": str(out)}
+    print(json.dumps(summary))
+    return summary
+
+
+def main() -> None:
+    import hydra
+    from hydra.core.hydra_config import HydraConfig
+
+    @hydra.main(version_base="1.3", config_path="../conf", config_name="generate")
+    def _main(cfg: DictConfig) -> None:
+        try:
+            summary = generate(cfg, list(HydraConfig.get().overrides.task))
+        except (ValueError, KeyError) as err:
+            print(f"generate: invalid configuration: {err}", file=sys.stderr)
+            sys.exit(2)
+        if summary["error"]:
+            sys.exit(1)
+
+    _main()
+
+
+if __name__ == "__main__":
+    main()
