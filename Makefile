@@ -23,7 +23,7 @@ test:  ## fast test suite (CI)
 test-slow:  ## slow verification tests (mesh convergence, large rotation, extremes)
 	$(PY) -m pytest -q -m slow
 
-designs:  ## sample N designs into $(OUT)/../designs
+designs:  ## sample N designs into data/designs
 	$(PY) -m fea_factory.sample n=$(N) out=data/designs
 
 solve-demo:  ## solve one sampled design (NP ranks) into data/demo.h5
@@ -35,6 +35,15 @@ dataset:  ## generate N episodes into OUT (JOBS in parallel, NP MPI ranks each);
 
 validate:  ## validate every episode in OUT
 	$(PY) -m data_schema.validate $(OUT)
+
+train:  ## train the Double GN on the episodes in OUT (resumes runs/train/last.pt)
+	$(PY) -m learn.train data_dir=$(OUT)
+
+evaluate:  ## roll out the trained model on the held-out split; report in runs/evaluate/
+	$(PY) -m learn.evaluate data_dir=$(OUT)
+
+sweep:  ## Hydra multirun grid search over latent sizes and MLP widths (runs/sweep/results.csv)
+	$(PY) -m learn.train -m +sweep=grid data_dir=$(OUT)
 
 bench-fea:  ## FEA benchmark table + plot (reports/bench_fea/)
 	$(PY) scripts/bench_fea.py --out reports/bench_fea
