@@ -7,13 +7,16 @@ from torch import nn
 from learn.graph import GraphIndex
 
 
-def mlp(n_in: int, widths: list[int], n_out: int) -> nn.Sequential:
-    """ReLU MLP n_in -> widths... -> n_out (linear output); pyramid-shaped when widths decrease."""
+def mlp(n_in: int, widths: list[int], n_out: int, layer_norm: bool = False) -> nn.Sequential:
+    """ReLU MLP n_in -> widths... -> n_out (linear output, then LayerNorm if asked); pyramid-shaped when widths
+    decrease."""
     layers: list[nn.Module] = []
     for w in widths:
         layers += [nn.Linear(n_in, w), nn.ReLU()]
         n_in = w
     layers.append(nn.Linear(n_in, n_out))
+    if layer_norm:
+        layers.append(nn.LayerNorm(n_out))
     return nn.Sequential(*layers)
 
 
@@ -28,13 +31,15 @@ class GNBlock(nn.Module):
     of each directed edge; f_U-beam sees cat(X_beam, sum of I_beam), f_U-joint cat(X_joint, sum of I_joint)."""
 
     def __init__(self, joint_in: int, beam_in: int, edge_in: int, latent: int, widths: list[int],
-                 joint_out: int, beam_out: int):
+                 joint_out: int, beam_out: int, layer_norm: bool = False, latent_out: bool = False):
+        """layer_norm: LayerNorm after the interaction MLPs, and after the update MLPs too when their output is a
+        latent graph (latent_out) rather than the final update."""
         super().__init__()
         pair = beam_in + 2 * joint_in + edge_in
-        self.joint_interaction = mlp(pair, widths, latent)
-        self.beam_interaction = mlp(pair, widths, latent)
-        self.beam_update = mlp(beam_in + latent, widths, beam_out)
-        self.joint_update = mlp(joint_in + latent, widths, joint_out)
+        self.joint_interaction = mlp(pair, widths, latent, layer_norm)
+        self.beam_interaction = mlp(pair, widths, latent, layer_norm)
+        self.beam_update = mlp(beam_in + latent, widths, beam_out, layer_norm and latent_out)
+        self.joint_update = mlp(joint_in + latent, widths, joint_out, layer_norm and latent_out)
 
     def forward(self, joints: torch.Tensor, beams: torch.Tensor, edges: torch.Tensor,
                 g: GraphIndex) -> tuple[torch.Tensor, torch.Tensor]:

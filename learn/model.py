@@ -18,25 +18,34 @@ EDGE_FEATURES = 6  # sender centre and receiver centre relative to the beam's mi
 class SingleGN(nn.Module):
     """One GN block from the input graph straight to the update dG."""
 
-    def __init__(self, joint_in, beam_in, edge_in, joint_out, beam_out, latent: int, widths: list[int]):
+    def __init__(self, joint_in, beam_in, edge_in, joint_out, beam_out, latent: int, widths: list[int],
+                 layer_norm: bool = False):
         super().__init__()
-        self.gn = GNBlock(joint_in, beam_in, edge_in, latent, widths, joint_out, beam_out)
+        self.gn = GNBlock(joint_in, beam_in, edge_in, latent, widths, joint_out, beam_out, layer_norm)
 
     def forward(self, joints, beams, edges, g: GraphIndex):
         return self.gn(joints, beams, edges, g)
 
 
 class DoubleGN(nn.Module):
-    """GN1 computes a latent graph G'; GN2 sees cat(G, G') and computes dG (unshared parameters)."""
+    """GN1 computes a latent graph G'; GN2 sees cat(G, G') and computes dG (unshared parameters). With n_blocks > 2
+    the chain continues: GN_k sees cat(G, G'_{k-1}), so information travels n_blocks hops per step."""
 
-    def __init__(self, joint_in, beam_in, edge_in, joint_out, beam_out, latent: int, widths: list[int]):
+    def __init__(self, joint_in, beam_in, edge_in, joint_out, beam_out, latent: int, widths: list[int],
+                 layer_norm: bool = False, n_blocks: int = 2):
         super().__init__()
-        self.gn1 = GNBlock(joint_in, beam_in, edge_in, latent, widths, latent, latent)
-        self.gn2 = GNBlock(joint_in + latent, beam_in + latent, edge_in, latent, widths, joint_out, beam_out)
+        assert n_blocks >= 2, "a double GN has at least two blocks"
+        first = GNBlock(joint_in, beam_in, edge_in, latent, widths, latent, latent, layer_norm, latent_out=True)
+        middle = [GNBlock(joint_in + latent, beam_in + latent, edge_in, latent, widths, latent, latent, layer_norm,
+                          latent_out=True) for _ in range(n_blocks - 2)]
+        last = GNBlock(joint_in + latent, beam_in + latent, edge_in, latent, widths, joint_out, beam_out, layer_norm)
+        self.blocks = nn.ModuleList([first, *middle, last])
 
     def forward(self, joints, beams, edges, g: GraphIndex):
-        lj, lb = self.gn1(joints, beams, edges, g)
-        return self.gn2(torch.cat([joints, lj], -1), torch.cat([beams, lb], -1), edges, g)
+        lj, lb = self.blocks[0](joints, beams, edges, g)
+        for block in self.blocks[1:]:
+            lj, lb = block(torch.cat([joints, lj], -1), torch.cat([beams, lb], -1), edges, g)
+        return lj, lb
 
 
 CORES = {"single_gn": SingleGN, "double_gn": DoubleGN}
@@ -79,7 +88,8 @@ def local_geometry(geometry: torch.Tensor, block: Block) -> torch.Tensor:
 class Simulator(nn.Module):
     """States in, next states out; every statistic (PCA, normalisers) is a buffer of this module.
 
-    args: core ("double_gn" | "single_gn"), latent (int), widths (list[int]), time_input (bool),
+    args: core ("double_gn" | "single_gn"), n_blocks (double_gn: GN blocks in the chain, 2 = the thesis),
+          latent (int), widths (list[int]), time_input (bool), layer_norm (bool),
           bc_position ("reference": the boundary-condition position is the block's reference position relative
           to the fixed joint; "current": its current one), pca ({term: [D, K]} for every name in TERMS)
           -- all plain types, so they are saved in checkpoints.
@@ -95,8 +105,11 @@ class Simulator(nn.Module):
         extra = 1 if args.get("time_input", True) else 0
         joint_in = sum(self.pca[t].k for t in TERMS[:3]) + extra
         beam_in = sum(self.pca[t].k for t in TERMS[3:]) + extra
+        core_args = dict(layer_norm=bool(args.get("layer_norm", False)))
+        if args["core"] == "double_gn":
+            core_args["n_blocks"] = int(args.get("n_blocks", 2))
         self.core = CORES[args["core"]](joint_in, beam_in, EDGE_FEATURES, JOINT.state_size, BEAM.state_size,
-                                        int(args["latent"]), [int(w) for w in args["widths"]])
+                                        int(args["latent"]), [int(w) for w in args["widths"]], **core_args)
 
     # ------------------------------------------------------------------------------------------- features
     def raw_terms(self, joint_state, beam_state, static: Static) -> dict[str, torch.Tensor]:

@@ -24,7 +24,8 @@ LAST, BEST = "last.pt", "best.pt"
 def model_args(cfg_model: DictConfig) -> dict:
     return {"core": str(cfg_model.core), "latent": int(cfg_model.latent),
             "widths": [int(w) for w in cfg_model.widths], "time_input": bool(cfg_model.time_input),
-            "bc_position": str(cfg_model.get("bc_position", "reference"))}
+            "bc_position": str(cfg_model.get("bc_position", "reference")),
+            "layer_norm": bool(cfg_model.get("layer_norm", False)), "n_blocks": int(cfg_model.get("n_blocks", 2))}
 
 
 def learning_rate(cfg: DictConfig, epoch: int) -> float:
