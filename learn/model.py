@@ -7,12 +7,14 @@ import numpy as np
 import torch
 from torch import nn
 
+from learn import frames
 from learn.gn import GNBlock
 from learn.graph import BEAM, JOINT, Block, GraphIndex
 from learn.pca import Normalizer, TermPCA
 
 TERMS = ("joint_geometry", "joint_stress", "joint_bc", "beam_geometry", "beam_stress", "beam_bc")
 EDGE_FEATURES = 6  # sender centre and receiver centre relative to the beam's middle centre
+EDGE_FEATURES_LOCAL = 18  # the same in the beam's frame + the two joints' frames relative to the beam's (6 each)
 
 
 class SingleGN(nn.Module):
@@ -89,56 +91,84 @@ class Simulator(nn.Module):
     """States in, next states out; every statistic (PCA, normalisers) is a buffer of this module.
 
     args: core ("double_gn" | "single_gn"), n_blocks (double_gn: GN blocks in the chain, 2 = the thesis),
-          latent (int), widths (list[int]), time_input (bool), layer_norm (bool),
+          latent (int), widths (list[int]), time_input (bool), layer_norm (bool), pin_fixed_joint (bool),
           bc_position ("reference": the boundary-condition position is the block's reference position relative
-          to the fixed joint; "current": its current one), pca ({term: [D, K]} for every name in TERMS)
+          to the fixed joint; "current": its current one),
+          frame ("global": features translated to each block's origin, as in the thesis; "local": also rotated
+          into each block's own frame, updates predicted there, gravity given per block; implies a current
+          bc position), pca ({term: [D, K]} for every name in TERMS)
           -- all plain types, so they are saved in checkpoints.
     """
 
     def __init__(self, args: dict):
         super().__init__()
         self.args = dict(args)
+        self.local = args.get("frame", "global") == "local"
         self.pca = nn.ModuleDict({t: TermPCA(*args["pca"][t]) for t in TERMS})
-        self.edge_norm = Normalizer(EDGE_FEATURES)
+        self.edge_norm = Normalizer(EDGE_FEATURES_LOCAL if self.local else EDGE_FEATURES)
         self.joint_delta = Normalizer(JOINT.state_size)
         self.beam_delta = Normalizer(BEAM.state_size)
-        extra = 1 if args.get("time_input", True) else 0
+        extra = (1 if args.get("time_input", True) else 0) + (3 if self.local else 0)
         joint_in = sum(self.pca[t].k for t in TERMS[:3]) + extra
         beam_in = sum(self.pca[t].k for t in TERMS[3:]) + extra
         core_args = dict(layer_norm=bool(args.get("layer_norm", False)))
         if args["core"] == "double_gn":
             core_args["n_blocks"] = int(args.get("n_blocks", 2))
-        self.core = CORES[args["core"]](joint_in, beam_in, EDGE_FEATURES, JOINT.state_size, BEAM.state_size,
-                                        int(args["latent"]), [int(w) for w in args["widths"]], **core_args)
+        self.core = CORES[args["core"]](joint_in, beam_in, self.edge_norm.mean.shape[0], JOINT.state_size,
+                                        BEAM.state_size, int(args["latent"]), [int(w) for w in args["widths"]],
+                                        **core_args)
 
     # ------------------------------------------------------------------------------------------- features
-    def raw_terms(self, joint_state, beam_state, static: Static) -> dict[str, torch.Tensor]:
-        """Every term as the PCA sees it (geometry translated to each block's own origin)."""
-        joint_bc, beam_bc = static.joint_bc, static.beam_bc
-        if self.args.get("bc_position", "reference") == "current":
-            joint_bc = with_current_position(joint_bc, joint_state, JOINT)
-            beam_bc = with_current_position(beam_bc, beam_state, BEAM)
-        return {
-            "joint_geometry": local_geometry(joint_state[..., JOINT.geometry_slice], JOINT),
-            "joint_stress": joint_state[..., JOINT.stress_slice],
-            "joint_bc": joint_bc,
-            "beam_geometry": local_geometry(beam_state[..., BEAM.geometry_slice], BEAM),
-            "beam_stress": beam_state[..., BEAM.stress_slice],
-            "beam_bc": beam_bc,
-        }
+    def frames(self, joint_state, beam_state):
+        """Block frames [..., J, 3, 3], [..., B, 3, 3] (local mode) or (None, None)."""
+        if not self.local:
+            return None, None
+        return frames.frame(joint_state, JOINT), frames.frame(beam_state, BEAM)
 
-    def edge_features(self, joint_state, beam_state, g: GraphIndex) -> torch.Tensor:
-        """[..., E, 6] sender and receiver centres relative to the beam's middle centre (the pair's origin)."""
+    def _block_terms(self, state, bc, block: Block, R) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        geometry = local_geometry(state[..., block.geometry_slice], block)
+        stress = state[..., block.stress_slice]
+        if self.local or self.args.get("bc_position", "reference") == "current":
+            bc = with_current_position(bc, state, block)
+        if R is not None:
+            geometry = frames.rotate_vectors(geometry, R, to_local=True)
+            stress = frames.rotate_stresses(stress, R, to_local=True)
+            pos = block.bc.slice("position")
+            bc = torch.cat([bc[..., :pos.start], frames.rotate_vectors(bc[..., pos], R, to_local=True),
+                            bc[..., pos.stop:]], -1)
+        return geometry, stress, bc
+
+    def raw_terms(self, joint_state, beam_state, static: Static, R=(None, None)) -> dict[str, torch.Tensor]:
+        """Every term as the PCA sees it (geometry translated to each block's own origin, in local mode also
+        rotated into the block's frame); R: frames from self.frames, computed here when not given."""
+        Rj, Rb = R if R[0] is not None or not self.local else self.frames(joint_state, beam_state)
+        jg, js, jbc = self._block_terms(joint_state, static.joint_bc, JOINT, Rj)
+        bg, bs, bbc = self._block_terms(beam_state, static.beam_bc, BEAM, Rb)
+        return {"joint_geometry": jg, "joint_stress": js, "joint_bc": jbc,
+                "beam_geometry": bg, "beam_stress": bs, "beam_bc": bbc}
+
+    def edge_features(self, joint_state, beam_state, g: GraphIndex, R=(None, None)) -> torch.Tensor:
+        """[..., E, De] sender and receiver centres relative to the beam's middle centre (the pair's origin);
+        in local mode expressed in the beam's frame, with the joints' frames relative to the beam's."""
         jc = joint_state[..., JOINT.origin_slice]
         bc = beam_state[..., BEAM.origin_slice].index_select(-2, g.edge_beam)
-        return torch.cat([jc.index_select(-2, g.senders) - bc, jc.index_select(-2, g.receivers) - bc], -1)
+        rel = torch.cat([jc.index_select(-2, g.senders) - bc, jc.index_select(-2, g.receivers) - bc], -1)
+        if not self.local:
+            return rel
+        Rj, Rb = R if R[0] is not None else self.frames(joint_state, beam_state)
+        Re = Rb.index_select(-3, g.edge_beam)
+        return torch.cat([frames.rotate_vectors(rel, Re, to_local=True),
+                          frames.relative_rotation(Re, Rj.index_select(-3, g.senders)),
+                          frames.relative_rotation(Re, Rj.index_select(-3, g.receivers))], -1)
 
-    def coefficients(self, joint_state, beam_state, static: Static) -> dict[str, torch.Tensor]:
-        return {t: self.pca[t](x) for t, x in self.raw_terms(joint_state, beam_state, static).items()}
+    def coefficients(self, joint_state, beam_state, static: Static, R=(None, None)) -> dict[str, torch.Tensor]:
+        return {t: self.pca[t](x) for t, x in self.raw_terms(joint_state, beam_state, static, R).items()}
 
-    def encode(self, joint_state, beam_state, static: Static, t):
-        """-> network inputs joints [..., J, Dj], beams [..., B, Db], edges [..., E, 6]."""
-        z = self.coefficients(joint_state, beam_state, static)
+    def encode(self, joint_state, beam_state, static: Static, t, R=(None, None)):
+        """-> network inputs joints [..., J, Dj], beams [..., B, Db], edges [..., E, De]."""
+        if self.local and R[0] is None:
+            R = self.frames(joint_state, beam_state)
+        z = self.coefficients(joint_state, beam_state, static, R)
         lead = joint_state.shape[:-2]
         parts_j = [z[k].expand(*lead, *z[k].shape[-2:]) for k in TERMS[:3]]
         parts_b = [z[k].expand(*lead, *z[k].shape[-2:]) for k in TERMS[3:]]
@@ -147,32 +177,53 @@ class Simulator(nn.Module):
             t = t.expand(lead).reshape(*lead, 1, 1)
             parts_j.append(t.expand(*lead, joint_state.shape[-2], 1))
             parts_b.append(t.expand(*lead, beam_state.shape[-2], 1))
-        edges = self.edge_norm(self.edge_features(joint_state, beam_state, static.index))
+        if self.local:
+            parts_j.append(frames.gravity(R[0]))
+            parts_b.append(frames.gravity(R[1]))
+        edges = self.edge_norm(self.edge_features(joint_state, beam_state, static.index, R))
         return torch.cat(parts_j, -1), torch.cat(parts_b, -1), edges
 
     # ------------------------------------------------------------------------------------------- dynamics
-    def forward(self, joint_state, beam_state, static: Static, t):
-        """Normalised updates dG: [..., J, JOINT.state_size], [..., B, BEAM.state_size]."""
-        return self.core(*self.encode(joint_state, beam_state, static, t), static.index)
+    def forward(self, joint_state, beam_state, static: Static, t, R=(None, None)):
+        """Normalised updates dG: [..., J, JOINT.state_size], [..., B, BEAM.state_size] (local mode: in the
+        blocks' frames R, which are computed here when not given)."""
+        if self.local and R[0] is None:
+            R = self.frames(joint_state, beam_state)
+        return self.core(*self.encode(joint_state, beam_state, static, t, R), static.index)
 
     def step(self, joint_state, beam_state, static: Static, t):
-        """G(t+1) = G(t) + dG, in raw units."""
-        dj, db = self(joint_state, beam_state, static, t)
-        return joint_state + self.joint_delta.inverse(dj), beam_state + self.beam_delta.inverse(db)
+        """G(t+1) = G(t) + dG, in raw units. With pin_fixed_joint the fixed joint's geometry does not move (its
+        top face is glued to the support): a boundary condition applied outside the network."""
+        R = self.frames(joint_state, beam_state)
+        dj, db = self(joint_state, beam_state, static, t, R)
+        dj, db = self.joint_delta.inverse(dj), self.beam_delta.inverse(db)
+        if self.local:
+            dj = frames.rotate_state(dj, JOINT, R[0], to_local=False)
+            db = frames.rotate_state(db, BEAM, R[1], to_local=False)
+        if self.args.get("pin_fixed_joint", False):
+            free = 1.0 - static.joint_bc[..., JOINT.bc.slice("fixed")]  # [J, 1]
+            geometry = torch.zeros(JOINT.state_size, dtype=dj.dtype)
+            geometry[JOINT.geometry_slice] = 1.0
+            dj = dj * (1.0 - geometry * (1.0 - free))
+        return joint_state + dj, beam_state + db
 
     @classmethod
     def fit(cls, args: dict, joint_state: torch.Tensor, beam_state: torch.Tensor, static: Static,
             retention: float = 0.98, delta_floor: float = 0.01) -> "Simulator":
         """A simulator whose PCA and normalisers are fitted on training states [F, J, Dj], [F, B, Db]."""
         probe = cls({**args, "pca": {t: [1, 1] for t in TERMS}})
-        raw = probe.raw_terms(joint_state, beam_state, static)
+        R = probe.frames(joint_state, beam_state)
+        raw = probe.raw_terms(joint_state, beam_state, static, R)
         pcas = {t: TermPCA.fit(x.reshape(-1, x.shape[-1]).numpy(), retention) for t, x in raw.items()}
         model = cls({**args, "pca": {t: [p.dim, p.k] for t, p in pcas.items()}})
         for t, p in pcas.items():
             model.pca[t].load_state_dict(p.state_dict())
-        edges = probe.edge_features(joint_state, beam_state, static.index)
-        for name, x, block in (("edge_norm", edges, None), ("joint_delta", joint_state.diff(dim=0), JOINT),
-                               ("beam_delta", beam_state.diff(dim=0), BEAM)):
+        edges = probe.edge_features(joint_state, beam_state, static.index, R)
+        dj, db = joint_state.diff(dim=0), beam_state.diff(dim=0)
+        if probe.local:  # updates as the network predicts them: in the frame of the step's start state
+            dj = frames.rotate_state(dj, JOINT, R[0][:-1], to_local=True)
+            db = frames.rotate_state(db, BEAM, R[1][:-1], to_local=True)
+        for name, x, block in (("edge_norm", edges, None), ("joint_delta", dj, JOINT), ("beam_delta", db, BEAM)):
             groups = None if block is None else [block.geometry_slice, block.stress_slice]
             norm = Normalizer.fit(x.reshape(-1, x.shape[-1]).numpy(), delta_floor if block else 0.0, groups)
             getattr(model, name).load_state_dict(norm.state_dict())

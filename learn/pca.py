@@ -6,6 +6,8 @@ import torch
 from torch import nn
 
 MIN_STD = 1e-6
+SCALE_FLOOR = 1e-3  # column scale >= this fraction of the term's RMS magnitude
+SIGMA_FLOOR = 0.05  # whitening never amplifies a standardised component by more than 1 / SIGMA_FLOOR
 
 
 class Normalizer(nn.Module):
@@ -67,7 +69,9 @@ class TermPCA(nn.Module):
         """x [n, D] training rows (training split only)."""
         x = np.asarray(x, dtype=np.float64)
         mean, std = x.mean(axis=0), x.std(axis=0)
-        scale = np.where(std > MIN_STD, std, 1.0)
+        # near-constant columns (a rigid joint's shape in its own frame) are not blown up to unit variance:
+        # their scale is floored at SCALE_FLOOR times the term's RMS magnitude
+        scale = np.maximum(std, max(SCALE_FLOOR * np.sqrt(np.mean(x ** 2)), MIN_STD))
         xs = (x - mean) / scale
         eigval, eigvec = np.linalg.eigh(xs.T @ xs / max(len(xs), 1))
         order = np.argsort(eigval)[::-1]
@@ -79,7 +83,7 @@ class TermPCA(nn.Module):
             k = int(np.searchsorted(np.cumsum(eigval) / total, min(retention, 1.0) - 1e-12) + 1)
             k = min(k, x.shape[1])
         p = cls(x.shape[1], k)
-        sigma = np.sqrt(np.maximum(eigval[:k], MIN_STD ** 2))
+        sigma = np.sqrt(np.maximum(eigval[:k], SIGMA_FLOOR ** 2))
         z = xs @ eigvec[:, :k] / sigma
         for name, value in (("mean", mean), ("scale", scale), ("components", eigvec[:, :k]), ("sigma", sigma),
                             ("lo", z.min(axis=0)), ("hi", z.max(axis=0)),

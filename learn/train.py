@@ -25,7 +25,9 @@ def model_args(cfg_model: DictConfig) -> dict:
     return {"core": str(cfg_model.core), "latent": int(cfg_model.latent),
             "widths": [int(w) for w in cfg_model.widths], "time_input": bool(cfg_model.time_input),
             "bc_position": str(cfg_model.get("bc_position", "reference")),
-            "layer_norm": bool(cfg_model.get("layer_norm", False)), "n_blocks": int(cfg_model.get("n_blocks", 2))}
+            "layer_norm": bool(cfg_model.get("layer_norm", False)), "n_blocks": int(cfg_model.get("n_blocks", 2)),
+            "pin_fixed_joint": bool(cfg_model.get("pin_fixed_joint", False)),
+            "frame": str(cfg_model.get("frame", "global"))}
 
 
 def learning_rate(cfg: DictConfig, epoch: int) -> float:

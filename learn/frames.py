@@ -1,0 +1,66 @@
+"""Block-attached frames: each block's own axes from its current geometry, and terms rotated into and out of them.
+
+A frame R [..., 3, 3] holds the block's axes as columns (e1 along, e2 across to the left, e3 up), so R^T v expresses
+a global vector v in the block's frame. Joint: e1 from its W side to its E side, e3 along its extrusion. Beam: e1
+from the start to the end cross-section centre, e3 along the middle cross-section's height vector.
+"""
+from __future__ import annotations
+
+import torch
+
+from learn.graph import BEAM, JOINT, Block
+
+_VOIGT_TO_TENSOR = torch.tensor([[0, 3, 4], [3, 1, 5], [4, 5, 2]])  # xx yy zz xy xz yz -> 3 x 3
+_TENSOR_ROWS, _TENSOR_COLS = torch.tensor([0, 1, 2, 0, 0, 1]), torch.tensor([0, 1, 2, 1, 2, 2])
+
+
+def orthonormal(along: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
+    """[..., 3] x 2 -> [..., 3, 3]: e1 = along, e3 = up made orthogonal to e1, e2 = e3 x e1."""
+    e1 = along / along.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+    e3 = up - (up * e1).sum(-1, keepdim=True) * e1
+    e3 = e3 / e3.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+    return torch.stack([e1, torch.linalg.cross(e3, e1), e3], dim=-1)
+
+
+def frame(state: torch.Tensor, block: Block) -> torch.Tensor:
+    """[..., n, S] states -> [..., n, 3, 3] block frames."""
+    g = block.geometry
+    if block is JOINT:
+        along = (state[..., g.slice("corner_se")] - state[..., g.slice("corner_sw")]
+                 + state[..., g.slice("corner_ne")] - state[..., g.slice("corner_nw")])
+        return orthonormal(along, state[..., g.slice("extrusion")])
+    along = state[..., g.slice("end_center")] - state[..., g.slice("start_center")]
+    return orthonormal(along, state[..., g.slice("middle_height")])
+
+
+def rotate_vectors(x: torch.Tensor, R: torch.Tensor, to_local: bool) -> torch.Tensor:
+    """[..., n, 3k] stacked 3-vectors, R [..., n, 3, 3] -> R^T v (to_local) or R v."""
+    v = x.unflatten(-1, (-1, 3))  # [..., n, k, 3]
+    eq = "...ji,...kj->...ki" if to_local else "...ij,...kj->...ki"
+    return torch.einsum(eq, R, v).flatten(-2)
+
+
+def rotate_stresses(x: torch.Tensor, R: torch.Tensor, to_local: bool) -> torch.Tensor:
+    """[..., n, 6k] stacked Voigt stresses -> R^T s R (to_local) or R s R^T."""
+    s = x.unflatten(-1, (-1, 6))[..., _VOIGT_TO_TENSOR]  # [..., n, k, 3, 3]
+    Rk = R.unsqueeze(-3)  # [..., n, 1, 3, 3]
+    t = Rk.transpose(-1, -2) @ s @ Rk if to_local else Rk @ s @ Rk.transpose(-1, -2)
+    return t[..., _TENSOR_ROWS, _TENSOR_COLS].flatten(-2)
+
+
+def rotate_state(x: torch.Tensor, block: Block, R: torch.Tensor, to_local: bool) -> torch.Tensor:
+    """A state or state update [..., n, S] (geometry fields all 3-vectors, then stresses) into or out of frames R."""
+    return torch.cat([rotate_vectors(x[..., block.geometry_slice], R, to_local),
+                      rotate_stresses(x[..., block.stress_slice], R, to_local)], dim=-1)
+
+
+def gravity(R: torch.Tensor) -> torch.Tensor:
+    """[..., n, 3] the unit downward vector -z in each block's frame (R^T (0, 0, -1))."""
+    return -R[..., 2, :]
+
+
+def relative_rotation(R_from: torch.Tensor, R_to: torch.Tensor) -> torch.Tensor:
+    """[..., 6] the first two columns of R_from^T R_to (the third follows from them)."""
+    return (R_from.transpose(-1, -2) @ R_to)[..., :2].flatten(-2)
+
+
