@@ -34,7 +34,7 @@ def plot_overlays(report: dict, rollouts: list[Rollout], path: Path) -> None:
         ax.set_zlim(c[2] - half, c[2] + half)
         if n == 0:
             ax.legend(loc="upper left")
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.02, right=0.97, bottom=0.05, top=0.86, wspace=0.1)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
