@@ -37,9 +37,11 @@ class SolverSettings:
     quadrature_degree: int = 4
     stress_quadrature_degree: int = 3
     max_it: int = 15
-    force_tol: float = 1e-8
+    force_tol: float = 1e-5
     line_search: str = "basic"
     linear_solver: str = "direct"
+    predictor: str = "linear"
+    jit_compile_args: tuple = ("-O2", "-g0")
 
     def __post_init__(self) -> None:
         checks = [
@@ -52,8 +54,9 @@ class SolverSettings:
             ("quadrature_degree", 1 <= self.quadrature_degree <= 8, "in [1, 8]"),
             ("newton.max_it", 1 <= self.max_it <= 200, "in [1, 200]"),
             ("newton.force_tol", 0 < self.force_tol < 1e-2, "in (0, 1e-2)"),
-            ("newton.line_search", self.line_search in ("basic", "bt", "l2", "cp"), "basic | bt | l2 | cp"),
+            ("newton.line_search", self.line_search in ("basic", "bt"), "basic | bt (cp and l2 diverge here)"),
             ("linear_solver", self.linear_solver in ("direct", "iterative"), "direct | iterative"),
+            ("predictor", self.predictor in ("linear", "none"), "linear | none"),
         ]
         for name, ok, allowed in checks:
             if not ok:
@@ -62,6 +65,8 @@ class SolverSettings:
     @classmethod
     def from_mapping(cls, m) -> "SolverSettings":
         flat = {k: m[k] for k in cls.__dataclass_fields__ if k in m}
+        if "jit_compile_args" in flat:
+            flat["jit_compile_args"] = tuple(str(a) for a in flat["jit_compile_args"])
         newton = m.get("newton", {}) or {}
         flat.update({k: newton[k] for k in ("max_it", "force_tol", "line_search") if k in newton})
         return cls(**flat)
@@ -197,7 +202,9 @@ class GridSolver:
         Pi = total_energy(self.material, self.u, self.S0, self.b, self.t, self.scene, dx)
         R = ufl.derivative(Pi, self.u, ufl.TestFunction(self.V))
         K = ufl.derivative(R, self.u, ufl.TrialFunction(self.V))
-        self.R_form, self.K_form = fem.form(R), fem.form(K)
+        jit = {"cffi_extra_compile_args": list(s.jit_compile_args)}
+        self.R_form, self.K_form = fem.form(R, jit_params=jit), fem.form(K, jit_params=jit)
+        self.Pi_form = fem.form(Pi, jit_params=jit) if s.line_search != "basic" else None
         self.bcs = [self._fixed_face_bc() if self.clamp == "top_face" else self._fixed_block_bc()]
         # outputs: Cauchy stress at Gauss points, node values through a Q1 space
         qp, qw = basix.make_quadrature(basix.CellType.hexahedron, s.stress_quadrature_degree)
@@ -252,16 +259,19 @@ class GridSolver:
         snes.setType("newtonls")
         snes.setFunction(self._residual, self.r)
         snes.setJacobian(self._tangent, self.A)
-        prefix = f"morphsim_{id(self)}_"
-        opts = PETSc.Options()
-        opts[f"{prefix}snes_linesearch_type"] = s.line_search
-        snes.setOptionsPrefix(prefix)
-        snes.setFromOptions()
+        if self.Pi_form is not None:  # the line search's merit function is the potential energy Pi itself
+            snes.setObjective(self._energy)
+        snes.setOptionsPrefix(f"morphsim_{id(self)}_")
+        self.snes = snes
+        self._set_line_search(s.line_search)
         ksp = snes.getKSP()
         if s.linear_solver == "direct":
+            # the tangent is the Hessian of Pi (and the Dirichlet rows/columns are zeroed symmetrically):
+            # MUMPS LDL^T, ~40 % cheaper than LU here (measured in the bench)
             ksp.setType("preonly")
-            ksp.getPC().setType("lu")
+            ksp.getPC().setType("cholesky")
             ksp.getPC().setFactorSolverType("mumps")
+            self.A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
         else:
             ksp.setType("cg")
             ksp.getPC().setType("gamg")
@@ -269,6 +279,12 @@ class GridSolver:
             self.A.setNearNullSpace(self._rigid_body_modes())
         snes.setConvergenceHistory(length=s.max_it + 1, reset=True)
         self.snes = snes
+
+    def _set_line_search(self, kind: str) -> None:
+        from petsc4py import PETSc
+
+        PETSc.Options()[f"{self.snes.getOptionsPrefix()}snes_linesearch_type"] = kind
+        self.snes.setFromOptions()
 
     def _rigid_body_modes(self):
         from dolfinx import la
@@ -302,6 +318,15 @@ class GridSolver:
         apply_lifting(r, [self.K_form], bcs=[self.bcs], x0=[x], scale=-1.0)
         r.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
         set_bc(r, self.bcs, x, -1.0)
+
+    def _energy(self, snes, x) -> float:
+        from dolfinx.fem import assemble_scalar
+        from mpi4py import MPI
+        from petsc4py import PETSc
+
+        x.copy(self.u.vector)
+        self.u.vector.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+        return self.comm.allreduce(assemble_scalar(self.Pi_form), op=MPI.SUM)
 
     def _tangent(self, snes, x, A, P) -> None:
         from dolfinx.fem.petsc import assemble_matrix
@@ -377,13 +402,23 @@ class GridSolver:
             cut = 0
             while True:
                 x_backup.copy(self.u.vector)  # restart from the last converged state (petsc: a.copy(b) is b <- a)
-                if dt_prev:  # extrapolate along the load path: u + dt/dt_prev (u - u_prev)
+                if dt_prev and s.predictor == "linear":  # extrapolate along the load path: u + dt/dt_prev (u - u_prev)
                     self.u.vector.axpy(dt / dt_prev, x_backup - u_prev)
                 self.t.value = t_now + dt
                 self.snes.solve(None, self.u.vector)
                 reason = self.snes.getConvergedReason()
                 its = self.snes.getIterationNumber()
                 finite = np.isfinite(self.u.vector.norm())
+                if reason == -6 and finite:
+                    # the energy does not decrease along the Newton step (indefinite tangent far from
+                    # equilibrium, or round-off next to it): go on from here with full Newton steps
+                    self._set_line_search("basic")
+                    self.snes.solve(None, self.u.vector)
+                    self._set_line_search(s.line_search)
+                    reason = self.snes.getConvergedReason()
+                    its += self.snes.getIterationNumber()
+                    finite = np.isfinite(self.u.vector.norm())
+                    self.stats["line_search_fallbacks"] = self.stats.get("line_search_fallbacks", 0) + 1
                 if reason > 0 and finite:
                     break
                 history = [float(v) for v in self.snes.getConvergenceHistory()[0][: its + 1]]
