@@ -77,9 +77,10 @@ class Design:
 
     @property
     def size(self) -> float:
-        """Design size (mm): the larger side of the bounding box of the joint centres, the error scale."""
+        """Design size (mm): the larger side of the bounding box of the joint centres, the error scale.
+        Same definition as data_schema.Episode.design_size (a valid design has a beam, so it is > 0)."""
         ext = self.joint_xy.max(axis=0) - self.joint_xy.min(axis=0)
-        return float(max(ext.max(), self.beam_width))
+        return float(ext.max())
 
     # ---------------------------------------------------------------- JSON
     def to_dict(self) -> dict:
