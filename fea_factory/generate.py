@@ -30,6 +30,7 @@ from fea_factory.mesh import MeshPreset
 from fea_factory.scene import Scene
 from fea_factory.solve import EXIT_DIVERGED
 from fea_factory.solver import SolverSettings
+from fea_factory.tradeoff import apply_tolerance
 
 ROOT = Path(__file__).resolve().parent.parent
 SOLVE_GROUPS = ("blocks", "mesh", "material", "scene", "solver")
@@ -50,6 +51,8 @@ def check_config(cfg: DictConfig) -> None:
             raise GenerateConfigError(f"{key} = {cfg[key]}: must be an integer >= {lo}")
     if not 0 <= int(cfg.shard) < int(cfg.n_shards):
         raise GenerateConfigError(f"shard = {cfg.shard}: must lie in [0, n_shards - 1 = {int(cfg.n_shards) - 1}]")
+    # solver.tolerance: fail here if no measured setting meets it (each episode's solve picks again, with np ranks)
+    apply_tolerance(cfg, ranks=int(cfg.np))
     MeshPreset.from_mapping(cfg.mesh)
     SolverSettings.from_mapping(cfg.solver)
     make_material(cfg.material)

@@ -3,6 +3,8 @@
 CLI (serial or under MPI):
     python -m fea_factory.solve design=FILE out=FILE.h5 [mesh=coarse] [scene=dry] [material=yeoh] ...
     mpirun -n 2 python -m fea_factory.solve design=FILE out=FILE.h5
+    python -m fea_factory.solve design=FILE out=FILE.h5 solver.tolerance=1%   (cheapest measured setting, see
+                                                                            fea_factory.tradeoff)
 A diverged solve prints a JSON failure record, exits with status 3 and writes nothing.
 """
 from __future__ import annotations
@@ -22,6 +24,7 @@ from fea_factory.material import make_material
 from fea_factory.mesh import MeshPreset, build_keyed_mesh
 from fea_factory.scene import Scene
 from fea_factory.solver import GridSolver, SolveFailure, SolverSettings, prestress_for
+from fea_factory.tradeoff import TradeoffError, apply_tolerance
 
 EXIT_DIVERGED = 3
 KIND_CODES = {"up": 0, "down": 1, "passive": 2}
@@ -109,6 +112,12 @@ def main() -> None:
         logging.getLogger("UFL").setLevel(logging.WARNING)
         logging.getLogger("FFCx").setLevel(logging.WARNING)
         comm = MPI.COMM_WORLD
+        try:  # solver.tolerance: the cheapest measured setting meeting it (recorded in cfg.solver.tolerance_pick)
+            apply_tolerance(cfg, ranks=comm.size)
+        except TradeoffError as err:
+            if comm.rank == 0:
+                print(f"solve: invalid configuration: {err}", file=sys.stderr)
+            sys.exit(2)
         design = Design.load(cfg.design)
         try:
             keyed, frames, stats, scene = solve_design(design, cfg, comm)

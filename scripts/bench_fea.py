@@ -13,7 +13,6 @@ import csv
 import json
 import os
 import platform
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -23,40 +22,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-
-def bench_design():
-    from fea_factory.design import lattice_design
-
-    xs, ys = np.meshgrid([0.0, 65.0, 130.0], [0.0, 60.0, 120.0], indexing="ij")
-    xy = np.stack([xs, ys], axis=-1) + np.array([[[0, 0], [4, -3], [0, 2]], [[-3, 4], [0, 0], [5, 1]],
-                                                  [[2, -4], [-4, 3], [0, 0]]], dtype=float)
-    kinds = ["up", "down", "up", "passive", "down", "up", "down", "up", "passive", "down", "up", "down"]
-    return lattice_design(xy, kinds, (1, 1), meta={"family": "bench"})
+from fea_factory.compare import bench_design, corner_positions, run_solve  # noqa: E402
 
 
 def run(design_file: Path, out: Path, preset: str, np_: int, linear: str) -> dict:
-    from fea_factory.generate import mpirun_env
-
-    cmd = ["mpirun", "-n", str(np_), sys.executable, "-m", "fea_factory.solve", f"design={design_file}",
-           f"out={out}", f"mesh={preset}", f"solver.linear_solver={linear}"]
-    r = subprocess.run(cmd, cwd=ROOT, env=mpirun_env(), capture_output=True, text=True, stdin=subprocess.DEVNULL)
-    last = json.loads(r.stdout.strip().splitlines()[-1])
-    if last.get("status") != "ok":
-        return {"status": last.get("status"), "reason": last.get("reason")}
-    from data_schema.episode import read_episode
-
-    ep = read_episode(out)
-    st = ep.solver_stats
-    return {"status": "ok", "cells": ep.n_cells, "nodes": ep.n_nodes, "wall_total_s": st["wall_total_s"],
-            "wall_jit_s": st["wall_jit_s"], "wall_solve_s": st["wall_solve_s"], "newton": st["newton_total"],
-            "increments": st["increments"], "cutbacks": st["cutbacks"], "episode": ep}
-
-
-def corner_positions(ep) -> np.ndarray:
-    """Final positions of the joint corner nodes (present at every preset), [J * 8, 3]."""
-    jn = ep.joint_nodes
-    corners = jn[:, [0, -1]][:, :, [0, -1]][:, :, :, [0, -1]].reshape(len(jn), -1)
-    return ep.node_xyz[-1][corners.reshape(-1)]
+    return run_solve(design_file, out, [f"mesh={preset}", f"solver.linear_solver={linear}"], ranks=np_)
 
 
 def main() -> None:
