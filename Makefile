@@ -4,12 +4,15 @@ NP      ?= 1
 JOBS    ?= 1
 N       ?= 8
 OUT     ?= data/episodes
+PANEL   ?= reduced
+# make tradeoff writes to reports/tradeoff unless OUT= is given on the command line
+TRADEOFF_OUT = $(if $(filter command line,$(origin OUT)),$(OUT),reports/tradeoff)
 MPIRUN  := OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 mpirun
 export OMPI_ALLOW_RUN_AS_ROOT=1
 export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset validate bench-fea train evaluate sweep clean
+.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset validate bench-fea tradeoff train evaluate sweep clean
 
 help:  ## list the targets
 	@grep -E '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-12s %s\n", $$1, $$2}'
@@ -47,6 +50,10 @@ sweep:  ## Hydra multirun grid search over latent sizes and MLP widths (runs/swe
 
 bench-fea:  ## FEA benchmark table + plot (reports/bench_fea/)
 	$(PY) scripts/bench_fea.py --out reports/bench_fea
+
+tradeoff:  ## speed/accuracy trade (PANEL=reduced|full, CHECKPOINTS=a.pt,.., INSTALL=1: conf/solver/tradeoff_table.csv)
+	$(PY) scripts/tradeoff.py --panel $(PANEL) --out $(TRADEOFF_OUT) $(if $(CHECKPOINTS),--checkpoints $(CHECKPOINTS)) \
+		$(if $(INSTALL),--install)
 
 clean:  ## remove generated data and reports (keeps .venv)
 	rm -rf data reports outputs multirun .pytest_cache

@@ -194,16 +194,18 @@ def setting_of(row: Mapping) -> Setting:
 
 
 def apply_tolerance(cfg, ranks: int = 1, table: Path | None = None) -> dict | None:
-    """If cfg.solver.tolerance is set: pick from the table, overwrite cfg.mesh (conf/mesh/<preset>.yaml) and the
-    solver's linear_solver/adaptive/increments/save_every in place, record the pick in cfg.solver.tolerance_pick
-    and return it. None (cfg untouched) when no tolerance is set."""
+    """If cfg.solver.tolerance is set: pick from the table (`table`, else cfg.solver.tolerance_table, else TABLE),
+    overwrite cfg.mesh (conf/mesh/<preset>.yaml) and the solver's linear_solver/adaptive/increments/save_every in
+    place, record the pick in cfg.solver.tolerance_pick and return it. None (cfg untouched) without a tolerance."""
     from omegaconf import OmegaConf, open_dict
 
     value = cfg.solver.get("tolerance") if "solver" in cfg else None
     if value is None:
         return None
     tol = parse_tolerance(value)
-    path = Path(table) if table is not None else TABLE
+    if table is None:  # +solver.tolerance_table=FILE (undeclared in conf: tests, or a table measured elsewhere)
+        table = cfg.solver.get("tolerance_table") or TABLE
+    path = Path(table)
     row = pick(read_table(path), tol, ranks=ranks, source=str(path.relative_to(ROOT) if path.is_relative_to(ROOT)
                                                               else path))
     s = setting_of(row)
