@@ -84,15 +84,18 @@ def panel(name: str, reference: str) -> tuple[list[PanelDesign], list[Setting]]:
     ref = Setting(reference)
     if name == "reduced":
         designs = [DESIGNS["regular3x3"], DESIGNS["random3x3"]]
-        settings = [ref, Setting("coarse"), Setting("default"), Setting("default", "fixed10"),
+        settings = [ref, Setting("coarse"), Setting("default"), Setting("medium"), Setting("default", "fixed10"),
                     Setting("default", "fixed20"), Setting("default", linear_solver="iterative"),
                     Setting("default", ranks=2)]
     elif name == "full":
         designs = list(DESIGNS.values())
         meshes = sorted({p.stem for p in (ROOT / "conf" / "mesh").glob("*.yaml")} - {reference},
                         key=_preset_size) + [reference]
-        settings = [ref] + [Setting(m, inc, lin) for m in meshes for inc in INCREMENT_MODES for lin in LINEAR_SOLVERS
-                            if Setting(m, inc, lin) != ref] + [Setting(m, ranks=2) for m in meshes]
+        # every increment mode x linear solver on the cheaper meshes; on the reference mesh (errors only a lower
+        # bound, never picked) just the speed knobs: iterative solver and 2 ranks
+        settings = [ref] + [Setting(m, inc, lin) for m in meshes[:-1] for inc in INCREMENT_MODES
+                            for lin in LINEAR_SOLVERS] + [Setting(reference, linear_solver="iterative")] + \
+            [Setting(m, ranks=2) for m in meshes]
     else:
         raise SystemExit(f"--panel {name!r}: must be reduced | full")
     return designs, settings
