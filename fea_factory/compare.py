@@ -79,6 +79,40 @@ class PeakMemory:
         return self.peak_mb
 
 
+def descendants(pid: int) -> list[int]:
+    kids, todo, out = _children(), [pid], []
+    while todo:
+        p = todo.pop()
+        out += kids.get(p, [])
+        todo += kids.get(p, [])
+    return out
+
+
+def stop_tree(proc: subprocess.Popen, grace: float = 10.0) -> None:
+    """SIGTERM an mpirun (it forwards the signal to its ranks), then SIGKILL whatever of its tree is left."""
+    tree = [(pid, _start_time(pid)) for pid in descendants(proc.pid)]
+    proc.terminate()
+    try:
+        proc.communicate(timeout=grace)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.communicate()
+    for pid, started in tree:  # same pid and start time: still our process, not a reused pid
+        if started is not None and _start_time(pid) == started:
+            try:
+                os.kill(pid, 9)
+            except (ProcessLookupError, PermissionError):
+                pass
+
+
+def _start_time(pid: int) -> int | None:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return int(f.read().rsplit(")", 1)[1].split()[19])
+    except (OSError, IndexError, ValueError):
+        return None
+
+
 # ------------------------------------------------------------------------------------------------ solve
 def solve_command(design_file: Path, out: Path, overrides: list[str], ranks: int = 1) -> list[str]:
     """`mpirun --bind-to none -n ranks python -m fea_factory.solve ...` (without --bind-to none, concurrent mpiruns
@@ -101,8 +135,7 @@ def run_solve(design_file: Path, out: Path, overrides: list[str], ranks: int = 1
     try:
         stdout, stderr = proc.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.communicate()
+        stop_tree(proc)
         return {"status": "timeout", "reason": f"no result after {timeout} s", "peak_mb": mem.stop(),
                 "process_s": time.perf_counter() - t0}
     result = {"process_s": time.perf_counter() - t0, "peak_mb": mem.stop()}

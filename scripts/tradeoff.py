@@ -21,7 +21,9 @@ Definitions
   output; rank 0); process_s adds interpreter start-up, imports and mpirun. Learned: median rollout time of one
   design (TorchScript-compiled, 1 thread), all frames.
 - peak_mb: peak resident memory of mpirun plus all its ranks, summed, polled every 0.1 s from /proc.
-Runs are sequential; every child inherits this process's niceness.
+- dominated: a run still going after --dominated (default 1) x its design's reference run time is stopped: the
+  reference beats it on both axes, so its exact time does not change the front or any pick.
+Runs are sequential, the reference first; every child inherits this process's niceness.
 """
 from __future__ import annotations
 
@@ -312,6 +314,9 @@ def main() -> None:
     ap.add_argument("--install", action="store_true", help=f"write the per-setting FEA table to {TABLE}")
     ap.add_argument("--table", default=str(TABLE), help="where --install writes the table")
     ap.add_argument("--timeout", type=float, default=3600.0, help="seconds per FEA run before it counts as failed")
+    ap.add_argument("--dominated", type=float, default=1.0,
+                    help="stop a run after this multiple of its design's reference run time (status 'dominated': the "
+                         "reference is then both faster and more accurate)")
     ap.add_argument("--list", action="store_true", help="print the planned runs and exit")
     ap.add_argument("--keep", action="store_true", help="keep the episode files (temporary directory)")
     args = ap.parse_args()
@@ -342,13 +347,19 @@ def main() -> None:
                              "joints": f"{m['grid']['nx']}x{m['grid']['ny']}"})
         design_file = tmp / f"{pd.name}.json"
         design.save(design_file)
+        ref_s = None
         for s in settings:
             ep_file = tmp / f"{pd.name}__{s.name.replace('/', '_')}.h5"
-            res = run_solve(design_file, ep_file, s.overrides(), ranks=s.ranks, timeout=args.timeout)
+            timeout = args.timeout if ref_s is None else min(args.timeout, args.dominated * ref_s)
+            res = run_solve(design_file, ep_file, s.overrides(), ranks=s.ranks, timeout=timeout)
             ep = res.pop("episode", None)
+            if res["status"] == "timeout" and ref_s is not None and timeout < args.timeout:
+                res.update(status="dominated", reason=f"stopped after {timeout:.0f} s = {args.dominated:g} x the "
+                                                      f"reference run: slower than the reference and less accurate")
             row = fea_row(pd, design, s, res)
             if s == reference:
                 refs[pd.name] = ep
+                ref_s = res["process_s"] if ep is not None else None
             ref = refs.get(pd.name)
             if ep is not None and ref is not None:
                 mx, mean = episode_error(ep, ref, size)
