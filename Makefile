@@ -12,7 +12,7 @@ export OMPI_ALLOW_RUN_AS_ROOT=1
 export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset validate bench-fea tradeoff train evaluate sweep clean
+.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset validate bench-fea stability tradeoff train evaluate sweep clean
 
 help:  ## list the targets
 	@grep -E '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-12s %s\n", $$1, $$2}'
@@ -47,6 +47,9 @@ evaluate:  ## roll out the trained model on the held-out split; report in runs/e
 
 sweep:  ## Hydra multirun grid search over latent sizes and MLP widths (runs/sweep/results.csv)
 	$(PY) -m learn.train -m +sweep=grid data_dir=$(OUT)
+
+stability:  ## stability matrix at the extremes (reports/stability/; ~9 min)
+	$(PY) scripts/stability_matrix.py --out reports/stability
 
 bench-fea:  ## FEA benchmark table + plot (reports/bench_fea/)
 	$(PY) scripts/bench_fea.py --out reports/bench_fea

@@ -26,6 +26,7 @@ class DesignLimits:
     printable_width: float = 300.0  # mm, x extent of the print bed
     printable_depth: float = 300.0  # mm, y extent of the print bed
     min_beam_length: float = 10.0  # mm, clear length of a beam between its two joint blocks
+    max_beam_length: float = 150.0  # mm, longest clear length verified stable (length/thickness 37.5)
     min_joint_angle: float = 45.0  # deg, smallest corner angle of a joint block (and 180 - it the largest)
     min_beam_width: float = 2.0  # mm
     max_beam_width: float = 20.0  # mm

@@ -165,6 +165,12 @@ def check_blocks(design: Design, g: BlockGeometry, limits: DesignLimits) -> None
             raise DesignError(
                 f"beam {b} (joints {a}-{c}): clear length {min(clear, side):.2f} mm between its joint blocks is "
                 f"below the allowed minimum {limits.min_beam_length} mm")
+        longest = max(clear, np.linalg.norm(q[1] - q[0]), np.linalg.norm(q[2] - q[3]))
+        if longest > limits.max_beam_length:
+            a, c = design.beams[b]
+            raise DesignError(
+                f"beam {b} (joints {a}-{c}): clear length {longest:.2f} mm is above the allowed maximum "
+                f"{limits.max_beam_length} mm (the longest beam the stability matrix tested)")
     polys = [("joint", n, joint_quad(g.joint_corners[n])) for n in range(design.n_joints)]
     polys += [("beam", b, beam_quad(g.beam_corners[b])) for b in range(design.n_beams)]
     incident = {("beam", b): set(design.beams[b].tolist()) for b in range(design.n_beams)}

@@ -22,14 +22,18 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
+POISSON_MAX = 0.4999  # tests/test_solver.py (locking) and fea_factory.extremes (nu_0.4999)
+
+
 class MaterialError(ValueError):
     """A material definition outside its valid range."""
 
 
 def bulk_modulus(mu0: float, poisson: float) -> float:
     """K = 2 mu0 (1 + nu) / (3 (1 - 2 nu)) for the small-strain shear modulus mu0."""
-    if not 0.0 <= poisson < 0.5:
-        raise MaterialError(f"material.poisson = {poisson}: must lie in [0, 0.5)")
+    if not 0.0 <= poisson <= POISSON_MAX:
+        raise MaterialError(f"material.poisson = {poisson}: must lie in [0, {POISSON_MAX}] (K/mu <= 5000: Q2 "
+                            "elements verified free of volumetric locking and convergent up to there)")
     return 2.0 * mu0 * (1.0 + poisson) / (3.0 * (1.0 - 2.0 * poisson))
 
 

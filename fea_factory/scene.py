@@ -9,6 +9,9 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 
+G_MAX = 98100.0  # mm/s^2: 10 g, verified by fea_factory.extremes (gravity_10x)
+
+
 class SceneError(ValueError):
     """A scene whose physics cannot be solved as asked."""
 
@@ -29,6 +32,9 @@ class Scene:
                              "(rigid-body modes make the problem singular). Set scene.fixed_face: true")
         if self.buoyancy and not self.gravity:
             raise SceneError(f"scene {self.name!r}: buoyancy without gravity is meaningless; set both or neither")
+        if self.g > G_MAX:
+            raise SceneError(f"scene.g = {self.g} mm/s^2: must lie in [0, {G_MAX}] (10 x earth gravity, the largest "
+                             "body force the stability matrix verified)")
         if self.g < 0 or self.fluid_density < 0:
             raise SceneError(f"scene {self.name!r}: g ({self.g}) and fluid_density ({self.fluid_density}) "
                              "must be >= 0")

@@ -62,6 +62,10 @@ def solve_design(design: Design, cfg, comm, progress=None):
     scene = Scene.from_mapping(cfg.scene)
     settings = SolverSettings.from_mapping(cfg.solver)
     rs = cfg.material.residual_stress
+    sigma_max = float(rs.get("sigma_max", float(rs.sigma)))
+    if not 0.0 <= float(rs.sigma) <= sigma_max:
+        raise ValueError(f"material.residual_stress.sigma = {rs.sigma} MPa: must lie in [0, {sigma_max}] "
+                         "(material.residual_stress.sigma_max, the largest value verified stable)")
     S0 = prestress_for(keyed, design, float(rs.sigma), str(rs.joint_model))
     solver = GridSolver(design, keyed, material, scene, S0, scene.body_force(float(cfg.material.density)),
                         settings, comm)

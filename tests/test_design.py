@@ -202,9 +202,11 @@ def test_crossing_beams():
 
 
 def test_footprint_larger_than_printable_area():
-    d = lattice_design(grid(3, 2, 160.0), "up", (1, 0))  # 320 + 7.2 mm wide
-    raises(d, r"design footprint 327.2 x 167.2 mm exceeds the printable area 300.0 x 300.0 mm")
-    validate(d, DesignLimits(printable_width=400.0))
+    d = lattice_design(grid(3, 2, 160.0), "up", (1, 0))  # 320 + 7.2 mm wide, beams 152.8 mm (long limit lifted)
+    raises(d, r"design footprint 327.2 x 167.2 mm exceeds the printable area 300.0 x 300.0 mm",
+           DesignLimits(max_beam_length=200.0))
+    raises(d, r"clear length 152.80 mm is above the allowed maximum 150.0 mm", DesignLimits(printable_width=400.0))
+    validate(d, DesignLimits(printable_width=400.0, max_beam_length=200.0))
 
 
 def test_coincident_joints():

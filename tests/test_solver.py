@@ -46,6 +46,14 @@ def test_bilayer_curvature_matches_timoshenko():
     assert abs(err) < 0.01, f"bilayer curvature off Timoshenko by {err:+.2%}"
 
 
+@pytest.mark.parametrize("nu", [0.49, 0.4999])
+def test_no_volumetric_locking_when_nearly_incompressible(nu):
+    # Q2 with 3x3x3 Gauss points: measured -0.31 % (nu 0.49) and -0.33 % (nu 0.4999, K/mu = 5000) on this
+    # coarse beam mesh, -0.29 % on 17/3/5 for both; a locking element would stiffen as nu -> 0.5.
+    err, _, _ = bilayer_error(COARSE, 0.002, nu)
+    assert abs(err) < 0.01, f"nu = {nu}: bilayer curvature off Timoshenko by {err:+.2%} (volumetric locking?)"
+
+
 @pytest.mark.slow
 def test_bilayer_mesh_convergence_and_large_rotation_arc():
     coarse, _, _ = bilayer_error(COARSE, 0.002)
