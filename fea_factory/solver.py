@@ -41,7 +41,7 @@ class SolverSettings:
     line_search: str = "basic"
     linear_solver: str = "direct"
     predictor: str = "linear"
-    jit_compile_args: tuple = ("-O2", "-g0")
+    jit_compile_args: tuple = ("-O3", "-march=native", "-g0")  # as conf/solver/default.yaml
 
     def __post_init__(self) -> None:
         checks = [
