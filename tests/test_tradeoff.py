@@ -33,7 +33,8 @@ TABLE = [row("coarse", 4.0, 0.04, "fixed10"), row("coarse", 5.0, 0.035), row("de
 
 @pytest.mark.parametrize("tol, want", [(0.05, "coarse/fixed10/direct/n1"), (0.04, "coarse/fixed10/direct/n1"),
                                        (0.036, "coarse/adaptive/direct/n1"), (0.02, "default/adaptive/direct/n1"),
-                                       (0.01, "default/adaptive/iterative/n1"), ("1%", "default/adaptive/iterative/n1")])
+                                       (0.01, "default/adaptive/iterative/n1"),
+                                       ("1%", "default/adaptive/iterative/n1")])
 def test_pick_is_the_cheapest_setting_meeting_the_tolerance(tol, want):
     assert pick(TABLE, tol, ranks=1)["setting"] == want
 
@@ -120,7 +121,8 @@ def test_every_setting_composes_to_valid_settings_with_11_frames(mode):
     for lin in ("direct", "iterative"):
         cfg = _compose("solve", "design=x", "out=y", *Setting("coarse", mode, lin).overrides())
         s = SolverSettings.from_mapping(cfg.solver)
-        assert len(s.frame_times) == 11 and s.linear_solver == lin and MeshPreset.from_mapping(cfg.mesh).name == "coarse"
+        assert len(s.frame_times) == 11 and s.linear_solver == lin
+        assert MeshPreset.from_mapping(cfg.mesh).name == "coarse"
 
 
 def test_solver_tolerance_in_the_composed_config(tmp_path):
@@ -179,6 +181,50 @@ def test_solve_cli_picks_from_the_table_and_records_it(tmp_path):
     assert "setting: coarse/fixed10/direct/n1" in ep.config_yaml and "tolerance: 0.05" in ep.config_yaml
 
 
+def load_script():
+    if "tradeoff_script" not in sys.modules:
+        spec = importlib.util.spec_from_file_location("tradeoff_script", ROOT / "scripts" / "tradeoff.py")
+        script = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = script  # dataclasses look their module up
+        spec.loader.exec_module(script)
+    return sys.modules["tradeoff_script"]
+
+
+def test_report_plot_summary_and_install_from_synthetic_rows(tmp_path):
+    import argparse
+
+    script = load_script()
+    rows = []
+    for design, scale in (("a", 1.0), ("b", 1.5)):
+        for s, wall, err, status in ((Setting("fine"), 100, 0.0, "ok"), (Setting("coarse"), 5, 0.03, "ok"),
+                                     (Setting("default"), 10, 0.01, "ok"), (Setting("medium"), 20, 0.004, "ok"),
+                                     (Setting("default", "fixed10"), math.nan, math.nan, "diverged"),
+                                     (Setting("fine", ranks=2), 70, 1e-8, "ok")):
+            rows.append({"design": design, "setting": s.name, "kind": "fea", "mesh": s.mesh,
+                         "increments": s.increments, "linear_solver": s.linear_solver, "ranks": s.ranks,
+                         "status": status, "wall_s": wall * scale, "newton": 50, "peak_mb": 300.0,
+                         "max_rel_error": err * scale, "mean_rel_error": err * scale / 3, "max_error_mm": err,
+                         "reason": ""})
+        rows.append({**rows[-1], "setting": "learned:x/best", "kind": "learned", "mesh": "", "increments": "",
+                     "linear_solver": "", "ranks": 1, "wall_s": 0.003, "max_rel_error": 0.02 * scale,
+                     "mean_rel_error": 0.005, "newton": math.nan, "peak_mb": None})
+    table = script.summarize(rows, Setting("fine"), "fine")
+    by = {t["setting"]: t for t in table}
+    assert by["learned:x/best"]["pareto"] and by["medium/adaptive/direct/n1"]["pareto"]
+    assert not by["fine/adaptive/direct/n1"]["pareto"] and not by["default/fixed10/direct/n1"]["pareto"]
+    assert script.cheapest(table, 0.01, fea_only=True)["setting"] == "medium/adaptive/direct/n1"
+    assert script.cheapest(table, 0.05, fea_only=False)["setting"] == "learned:x/best"
+    assert script.cheapest(table, 0.001, fea_only=True) is None
+    script.plot(table, tmp_path, Setting("fine"))
+    assert (tmp_path / "pareto.png").stat().st_size > 10_000
+    args = argparse.Namespace(panel="reduced")
+    md = script.markdown(rows, table, [], Setting("fine"), args, 1.0, "0/0/0", "0/0/0", "none")
+    assert "| 1 % | `medium/adaptive/direct/n1` | 25 | 0.6 % |" in md and "| 0.5 % | none measured |" in md
+    script.write_csv(tmp_path / "t.csv", rows)
+    path = write_table(tmp_path / "table.csv", [t for t in table if t["kind"] == "fea"])
+    assert pick(read_table(path), 0.02)["setting"] == "default/adaptive/direct/n1"
+
+
 def test_learned_row_compares_the_rollout_joint_corners(tmp_path):
     """scripts/tradeoff.py's learned rows on a synthetic episode with an (untrained) fitted simulator."""
     torch = pytest.importorskip("torch")
@@ -187,10 +233,7 @@ def test_learned_row_compares_the_rollout_joint_corners(tmp_path):
     from learn.features import JOINT_POINTS, extract
     from learn.model import Simulator, static_from
 
-    spec = importlib.util.spec_from_file_location("tradeoff_script", ROOT / "scripts" / "tradeoff.py")
-    script = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = script  # dataclasses look their module up
-    spec.loader.exec_module(script)
+    script = load_script()
     ep = synthetic_episode(3, 3, 5, 3, 3, frames=4, seed=1)
     f = extract(ep)
     model = Simulator.fit({"core": "double_gn", "latent": 8, "widths": [16, 8], "time_input": True},
