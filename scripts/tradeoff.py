@@ -21,8 +21,9 @@ Definitions
   output; rank 0); process_s adds interpreter start-up, imports and mpirun. Learned: median rollout time of one
   design (TorchScript-compiled, 1 thread), all frames.
 - peak_mb: peak resident memory of mpirun plus all its ranks, summed, polled every 0.1 s from /proc.
-- dominated: a run still going after --dominated (default 1) x its design's reference run time is stopped: the
-  reference beats it on both axes, so its exact time does not change the front or any pick.
+- dominated: a run still going after --dominated (default 1.5) x the time of the fastest finished run of the same
+  design on a mesh at least as fine is stopped: that run is at least as accurate (same mesh: same converged
+  answer, measured to 3 digits; finer mesh: more accurate) and faster, so the exact time changes no pick.
 Runs are sequential, the reference first; every child inherits this process's niceness.
 """
 from __future__ import annotations
@@ -95,8 +96,10 @@ def panel(name: str, reference: str) -> tuple[list[PanelDesign], list[Setting]]:
                         key=_preset_size) + [reference]
         # every increment mode x linear solver on the cheaper meshes; on the reference mesh (errors only a lower
         # bound, never picked) just the speed knobs: iterative solver and 2 ranks
-        settings = [ref] + [Setting(m, inc, lin) for m in meshes[:-1] for inc in INCREMENT_MODES
-                            for lin in LINEAR_SOLVERS] + [Setting(reference, linear_solver="iterative")] + \
+        # (base runs of every mesh first: they set the time caps of the variants, see time_cap)
+        settings = [ref] + [Setting(m) for m in meshes[:-1]] + \
+            [Setting(m, inc, lin) for m in meshes[:-1] for inc in INCREMENT_MODES for lin in LINEAR_SOLVERS
+             if Setting(m, inc, lin) != Setting(m)] + [Setting(reference, linear_solver="iterative")] + \
             [Setting(m, ranks=2) for m in meshes]
     else:
         raise SystemExit(f"--panel {name!r}: must be reduced | full")
@@ -111,6 +114,16 @@ def _preset_size(name: str) -> int:
 
 
 # ------------------------------------------------------------------------------------------------ FEA
+def time_cap(s: Setting, done: list[tuple[Setting, float]], factor: float) -> tuple[float, Setting] | None:
+    """(factor x seconds, that run) of the fastest finished run on a mesh at least as fine as s's, or None."""
+    size = _preset_size(s.mesh)
+    runs = [(t, d) for d, t in done if _preset_size(d.mesh) >= size]
+    if not runs:
+        return None
+    t, d = min(runs, key=lambda x: x[0])
+    return factor * t, d
+
+
 def fea_row(pd: PanelDesign, design, s: Setting, res: dict) -> dict:
     return {"design": pd.name, "design_size_mm": round(design.size, 2), "setting": s.name, "kind": "fea",
             "mesh": s.mesh, "increments": s.increments, "linear_solver": s.linear_solver, "ranks": s.ranks,
@@ -247,7 +260,9 @@ def plot(table: list[dict], out: Path, reference: Setting) -> None:
         ax.scatter(t["wall_s"], y, s=50 if t["pareto"] else 22, marker="v" if ref else "o",
                    facecolors="none" if ref else colors[t["kind"]], edgecolors=colors[t["kind"]], zorder=3)
         label = t["setting"] + (f" (vs reference {t['max_rel_error']:.1g})" if ref else "")
-        ax.annotate(label, (t["wall_s"], y), fontsize=7 if t["pareto"] else 6, xytext=(4, 3 + (9 * (n_ref % 4) - 14 if ref else 0)), textcoords="offset points",
+        dy = 9 * (n_ref % 4) - 11 if ref else 3  # stagger the reference rows' labels
+        ax.annotate(label, (t["wall_s"], y), fontsize=7 if t["pareto"] else 6, xytext=(4, dy),
+                    textcoords="offset points",
                     fontweight="bold" if t["pareto"] else "normal", color="black" if t["pareto"] else "dimgray",
                     rotation=0 if t["pareto"] or ref else 12)
     ax.axhspan(floor / 2, floor * 2, color="0.93", zorder=0)
@@ -280,6 +295,7 @@ def markdown(rows, table, designs_info, reference, args, wall_total, load_before
     lines = [f"# Speed/accuracy trade-off ({args.panel} panel)", "",
              f"- Machine: {machine()}; load average (1/5/15 min) {load_before} before, {load_after} after the run",
              f"- Command: `{cmd}` (panel wall time {wall_total:.0f} s)",
+             *([f"- Note: {args.note}"] if args.note else []),
              f"- Reference: `{reference.name}` (per design, same run). Error = distance of the joints' corner nodes "
              "to the reference's over every saved frame after t = 0, / design size; rows on the reference mesh "
              "only measure solver/rank/increment differences (lower bound, never picked).",
@@ -333,9 +349,10 @@ def main() -> None:
     ap.add_argument("--install", action="store_true", help=f"write the per-setting FEA table to {TABLE}")
     ap.add_argument("--table", default=str(TABLE), help="where --install writes the table")
     ap.add_argument("--timeout", type=float, default=3600.0, help="seconds per FEA run before it counts as failed")
-    ap.add_argument("--dominated", type=float, default=1.0,
-                    help="stop a run after this multiple of its design's reference run time (status 'dominated': the "
-                         "reference is then both faster and more accurate)")
+    ap.add_argument("--dominated", type=float, default=1.5,
+                    help="stop a run after this multiple of the fastest finished run of its design on a mesh at least "
+                         "as fine (status 'dominated')")
+    ap.add_argument("--note", default="", help="a line on the conditions (e.g. machine load) for summary and table")
     ap.add_argument("--list", action="store_true", help="print the planned runs and exit")
     ap.add_argument("--keep", action="store_true", help="keep the episode files (temporary directory)")
     args = ap.parse_args()
@@ -366,26 +383,28 @@ def main() -> None:
                              "joints": f"{m['grid']['nx']}x{m['grid']['ny']}"})
         design_file = tmp / f"{pd.name}.json"
         design.save(design_file)
-        ref_s = None
+        done: list[tuple[Setting, float]] = []  # this design's finished runs and their process times
         for s in settings:
             if s != reference and refs.get(pd.name) is None:
                 rows.append({**fea_row(pd, design, s, {"status": "skipped"}), "reason": "the reference run failed"})
                 continue
             ep_file = tmp / f"{pd.name}__{s.name.replace('/', '_')}.h5"
-            timeout = args.timeout if ref_s is None else min(args.timeout, args.dominated * ref_s)
+            cap = time_cap(s, done, args.dominated)
+            timeout = args.timeout if cap is None else min(args.timeout, cap[0])
             res = run_solve(design_file, ep_file, s.overrides(), ranks=s.ranks, timeout=timeout)
             if res["status"] == "error":  # not a divergence: a crash, once retried (e.g. a kernel-cache race)
                 print(json.dumps({"design": pd.name, "setting": s.name, "error, retrying": res["reason"]}), flush=True)
                 res = run_solve(design_file, ep_file, s.overrides(), ranks=s.ranks, timeout=timeout)
                 res["reason"] = ("retried once; " + str(res.get("reason") or "")).rstrip("; ")
             ep = res.pop("episode", None)
-            if res["status"] == "timeout" and ref_s is not None and timeout < args.timeout:
+            if res["status"] == "timeout" and cap is not None and timeout < args.timeout:
                 res.update(status="dominated", reason=f"stopped after {timeout:.0f} s = {args.dominated:g} x the "
-                                                      f"reference run: slower than the reference and less accurate")
+                                                      f"{cap[1].name} run (a mesh at least as fine)")
+            if ep is not None:
+                done.append((s, res["process_s"]))
             row = fea_row(pd, design, s, res)
             if s == reference:
                 refs[pd.name] = ep
-                ref_s = res["process_s"] if ep is not None else None
             ref = refs.get(pd.name)
             if ep is not None and ref is not None:
                 mx, mean = episode_error(ep, ref, size)
@@ -434,6 +453,7 @@ def main() -> None:
             f"Date: {time.strftime('%Y-%m-%d %H:%M')}; machine: {machine()}; load average {load_before} before, "
             f"{load_after} after",
             f"Panel: {args.panel} ({', '.join(d['name'] for d in designs_info)}); reference {reference.name}",
+            *([f"Note: {args.note}"] if args.note else []),
             "max_rel_error: worst over the designs of the max joint-corner error / design size; wall_s: mean solver "
             "wall time; reference = 1: on the reference mesh (error is a lower bound, never picked)"])
         print(f"installed {path}")

@@ -43,6 +43,7 @@ def test_pick_prefers_rows_of_the_episode_rank_count_and_falls_back_to_all():
     assert pick(TABLE, 0.01, ranks=2)["setting"] == "default/adaptive/direct/n2"
     assert pick(TABLE, 0.05, ranks=2)["setting"] == "default/adaptive/direct/n2"  # the only n2 row meeting it
     assert pick(TABLE, 0.05, ranks=4)["setting"] == "coarse/fixed10/direct/n1"  # no n4 rows: all rows
+    assert pick(TABLE, 0.0085, ranks=2)["setting"] == "default/adaptive/iterative/n1"  # no n2 row meets it
     assert pick(TABLE, 0.05)["setting"] == "coarse/fixed10/direct/n1"
 
 
@@ -217,7 +218,7 @@ def test_report_plot_summary_and_install_from_synthetic_rows(tmp_path):
     assert script.cheapest(table, 0.001, fea_only=True) is None
     script.plot(table, tmp_path, Setting("fine"))
     assert (tmp_path / "pareto.png").stat().st_size > 10_000
-    args = argparse.Namespace(panel="reduced")
+    args = argparse.Namespace(panel="reduced", note="")
     md = script.markdown(rows, table, [], Setting("fine"), args, 1.0, "0/0/0", "0/0/0", "none")
     assert "| 1 % | `medium/adaptive/direct/n1` | 25 | 0.6 % |" in md and "| 0.5 % | none measured |" in md
     script.write_csv(tmp_path / "t.csv", rows)
@@ -245,3 +246,12 @@ def test_learned_row_compares_the_rollout_joint_corners(tmp_path):
     idx = script.corner_point_index(f.point_nodes, corner_nodes(ep))
     assert (f.point_nodes[idx] == corner_nodes(ep)).all()
     assert (idx < len(ep.joint_nodes) * len(JOINT_POINTS)).all()  # the joints' own predictions, not beam end faces
+
+
+def test_time_cap_is_the_fastest_run_on_a_mesh_at_least_as_fine():
+    script = load_script()
+    done = [(Setting("fine"), 300.0), (Setting("coarse"), 15.0), (Setting("default"), 27.0)]
+    assert script.time_cap(Setting("default", "fixed10"), done, 1.5) == (40.5, Setting("default"))
+    assert script.time_cap(Setting("coarse", linear_solver="iterative"), done, 1.0) == (15.0, Setting("coarse"))
+    assert script.time_cap(Setting("medium", ranks=2), done, 1.0) == (300.0, Setting("fine"))
+    assert script.time_cap(Setting("fine"), [], 1.0) is None
