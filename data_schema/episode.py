@@ -22,6 +22,13 @@ COMPRESS_MIN_BYTES = 4096  # smaller datasets are stored contiguous and uncompre
 Frames = int | slice | Sequence[int] | np.ndarray | None
 
 
+def design_size(joint_xy: np.ndarray) -> float:
+    """Larger side (mm) of the bounding box of the joint centres [J, 2]: the scale of every relative error
+    (fea_factory.design.Design.size is this too)."""
+    joint_xy = np.asarray(joint_xy)
+    return float((joint_xy.max(axis=0) - joint_xy.min(axis=0)).max())
+
+
 class _EpisodeMethods:
     """Derived quantities of an Episode (the attributes themselves come from data_schema.fields.FIELDS)."""
 
@@ -48,7 +55,7 @@ class _EpisodeMethods:
     @property
     def design_size(self) -> float:
         """Larger side (mm) of the bounding box of the joint centres: the scale of relative errors."""
-        return float((self.joint_xy.max(axis=0) - self.joint_xy.min(axis=0)).max())
+        return design_size(self.joint_xy)
 
     @property
     def solver_stats(self) -> dict:

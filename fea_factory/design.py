@@ -78,10 +78,11 @@ class Design:
 
     @property
     def size(self) -> float:
-        """Design size (mm): the larger side of the bounding box of the joint centres, the error scale.
-        Same definition as data_schema.Episode.design_size (a valid design has a beam, so it is > 0)."""
-        ext = self.joint_xy.max(axis=0) - self.joint_xy.min(axis=0)
-        return float(ext.max())
+        """Design size (mm): the larger side of the bounding box of the joint centres, the error scale
+        (one definition, data_schema.episode.design_size; a valid design has a beam, so it is > 0)."""
+        from data_schema.episode import design_size
+
+        return design_size(self.joint_xy)
 
     # ---------------------------------------------------------------- JSON
     def to_dict(self) -> dict:
