@@ -12,12 +12,20 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from omegaconf import OmegaConf
 
 from fea_factory.compare import bench_design
 from fea_factory.design import Design, lattice_design
 
 CONF = str(Path(__file__).resolve().parent.parent / "conf")
-NOMINAL_SIGMA = 0.0658  # MPa, conf/material/pla_80c.yaml (checked against the conf in tests/test_extremes.py)
+
+
+def nominal_sigma(material: str = "pla_80c") -> float:
+    """The shipped residual stress of `material` (MPa), read from conf/material: the one source of truth."""
+    return float(OmegaConf.load(Path(CONF) / "material" / f"{material}.yaml").residual_stress.sigma)
+
+
+NOMINAL_SIGMA = nominal_sigma()
 
 
 def strip(length: float, kind: str = "up", width: float = 7.2) -> Design:

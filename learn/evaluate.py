@@ -15,7 +15,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from learn import checkpoint
-from learn.dataset import GraphSet, load_features
+from learn.dataset import GraphSet, episode_paths, load_features
 from learn.features import EpisodeFeatures, rebuild_all_points
 from learn.model import Simulator, static_from
 from learn.rollout import compile_rollout, graph_inputs, reference, rollout, unroll
@@ -85,10 +85,16 @@ def evaluate(cfg: DictConfig) -> dict:
     ckpt = checkpoint.load(cfg.checkpoint)
     model = checkpoint.model_from(ckpt)
     data_dir = Path(cfg.data_dir or ckpt["config"]["data_dir"])
-    names = ckpt["split"][cfg.split]
-    if not names:
+    if cfg.split == "all":  # every episode in data_dir, e.g. designs outside the training ranges
+        paths = episode_paths(data_dir)
+    elif cfg.split in ckpt["split"]:
+        paths = [data_dir / n for n in ckpt["split"][cfg.split]]
+    else:
+        raise ValueError(f"split={cfg.split!r}: allowed are {sorted(ckpt['split'])} (stored in {cfg.checkpoint}) "
+                         "or 'all' (every *.h5 in data_dir)")
+    if not paths:
         raise ValueError(f"split {cfg.split!r} of {cfg.checkpoint} is empty")
-    features = load_features([data_dir / n for n in names])
+    features = load_features(paths)
     out_dir = Path(cfg.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
 

@@ -8,8 +8,10 @@ pytest.importorskip("dolfinx")
 from fea_factory.extremes import CASES, NOMINAL_SIGMA, compose, run_case  # noqa: E402
 
 
-def test_nominal_sigma_matches_the_shipped_material():
+def test_nominal_sigma_is_the_composed_material_sigma():
     assert float(compose([]).material.residual_stress.sigma) == pytest.approx(NOMINAL_SIGMA)
+    sigma_2x = next(c for c in CASES if c.name == "sigma_2x")
+    assert sigma_2x.overrides == [f"material.residual_stress.sigma={2 * NOMINAL_SIGMA}"]
 
 
 @pytest.mark.slow

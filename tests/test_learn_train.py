@@ -126,6 +126,15 @@ def test_evaluate_writes_the_report(trained, tmp_path):
     assert (tmp_path / "overlay_best_median_worst.png").exists()
 
 
+def test_evaluate_all_episodes_of_a_directory_and_refuse_an_unknown_split(trained, data_dir, tmp_path):
+    run, _ = trained
+    base = [f"checkpoint={run / 'best.pt'}", f"data_dir={data_dir}", "timing_repeats=1", "plots=false"]
+    report = evaluate(cfg_for("evaluate", base + [f"out_dir={tmp_path / 'all'}", "split=all"]))
+    assert report["n_designs"] == len(list(Path(data_dir).glob("*.h5")))
+    with pytest.raises(ValueError, match="split='holdout'.*allowed"):
+        evaluate(cfg_for("evaluate", base + [f"out_dir={tmp_path / 'bad'}", "split=holdout"]))
+
+
 @pytest.mark.parametrize("model_name", ["single_gn", "double_gn"])
 def test_every_model_config_composes_and_trains(data_dir, tmp_path, model_name):
     cfg = cfg_for("train", [f"model={model_name}"] + tiny(data_dir, tmp_path, "epochs=1", "rollout_horizon=3",
