@@ -12,7 +12,7 @@ export OMPI_ALLOW_RUN_AS_ROOT=1
 export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset validate bench-fea stability tradeoff train evaluate sweep clean
+.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset validate bench-fea stability tradeoff train evaluate sweep learned-extremes clean
 
 help:  ## list the targets
 	@grep -E '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-12s %s\n", $$1, $$2}'
@@ -57,6 +57,9 @@ bench-fea:  ## FEA benchmark table + plot (reports/bench_fea/)
 tradeoff:  ## speed/accuracy trade (PANEL=reduced|full, CHECKPOINTS=a.pt,.., INSTALL=1: conf/solver/tradeoff_table.csv)
 	$(PY) scripts/tradeoff.py --panel $(PANEL) --out $(TRADEOFF_OUT) $(if $(CHECKPOINTS),--checkpoints $(CHECKPOINTS)) \
 		$(if $(INSTALL),--install)
+
+learned-extremes:  ## learned simulator on FEA designs outside its training ranges (CKPT=runs/train/best.pt; reports/learned_extremes/)
+	$(PY) scripts/learned_extremes.py --checkpoint $(or $(CKPT),runs/train/best.pt) --out reports/learned_extremes --jobs $(JOBS)
 
 clean:  ## remove generated data and reports (keeps .venv)
 	rm -rf data reports outputs multirun .pytest_cache
