@@ -19,7 +19,7 @@ import sys
 import tempfile
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
@@ -74,6 +74,19 @@ class Manifest:
 
     def __init__(self, path: Path):
         self.path, self.lock = path, threading.Lock()
+
+    def episodes_with_status(self, *statuses: str) -> set[int]:
+        """Episodes that have a record with one of `statuses` (a torn last line from a kill is ignored)."""
+        found = set()
+        if self.path.exists():
+            for line in self.path.read_text().splitlines():
+                try:
+                    rec = json.loads(line)
+                except json.JSONDecodeError:
+                    continue
+                if rec.get("status") in statuses:
+                    found.add(int(rec["episode"]))
+        return found
 
     def append(self, record: dict) -> None:
         line = json.dumps(record, sort_keys=True) + "\n"
@@ -139,10 +152,16 @@ def generate(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict:
         for stale in out.glob(f"episode_{i:05d}.h5.*tmp"):
             stale.unlink()
     todo, skipped = [], 0
+    recorded = manifest.episodes_with_status("ok", "skipped")
     for i in mine:
         path = episode_path(out, i)
         if path.exists() and not validate_episode(path):
             skipped += 1
+            if i not in recorded:  # written, then the generator died before its manifest line
+                manifest.append({"episode": i, "seed": int(cfg.seed), "status": "skipped", "file": str(path),
+                                 "bytes": path.stat().st_size,
+                                 "reason": "valid episode file without a manifest record (generator killed "
+                                           "after writing it); kept"})
             continue
         if path.exists():
             path.unlink()  # present but invalid: solve again
@@ -155,7 +174,7 @@ def generate(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict:
     with ThreadPoolExecutor(max_workers=int(cfg.jobs)) as pool, \
             tqdm(total=len(todo), desc=f"episodes (shard {cfg.shard})", unit="ep", disable=not cfg.progress) as bar:
         futures = [pool.submit(run_episode, i, designs[i], out, cfg, overrides) for i in todo]
-        for fut in futures:
+        for fut in as_completed(futures):  # record each episode as soon as it ends, not in submission order
             rec = fut.result()
             manifest.append(rec)
             counts[rec["status"]] += 1

@@ -71,6 +71,15 @@ def test_kill_mid_episode_then_resume_completes_the_set(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     summary = json.loads(r.stdout.strip().splitlines()[-1])
     assert summary["done"] == 1 and summary["skipped"] == 1
+    # a valid file whose manifest line was lost (killed between rename and append) gets a "skipped" record
+    lines = (out / "manifest.jsonl").read_text().splitlines()
+    (out / "manifest.jsonl").write_text("\n".join(l for l in lines if json.loads(l)["episode"] != 0) + "\n")
+    r = generate(out, "n=2")
+    assert r.returncode == 0, r.stderr[-2000:]
+    records = {rec["episode"]: rec for rec in manifest(out)}
+    assert sorted(records) == [0, 1] and records[0]["status"] == "skipped" and records[0]["bytes"] > 0
+    r = generate(out, "n=2")  # and only once
+    assert len(manifest(out)) == 2
     files = sorted(out.glob("episode_*.h5"))
     assert [f.name for f in files] == ["episode_00000.h5", "episode_00001.h5"]
     assert all(validate_episode(f) == [] for f in files)
