@@ -144,8 +144,10 @@ def train(cfg: DictConfig) -> dict:
                "core": model.args["core"], "latent": model.args["latent"],
                "widths": "x".join(map(str, model.args["widths"])),
                "pca_dims": " ".join(f"{t}={p.k}" for t, p in model.pca.items())}
-    save(last, epoch, finished=True, summary=summary)
-    log.info("done (%s): %s", stop_reason, summary)
+    # a time limit is an interruption, not an end: re-run with a larger time_limit_min to continue
+    finished = not stop_reason.startswith("time limit")
+    save(last, epoch, finished=finished, summary=summary)
+    log.info("%s (%s): %s", "done" if finished else "paused, resumable", stop_reason, summary)
     if cfg.get("results_csv"):
         append_result(cfg.results_csv, {**summary, "overrides": cfg.get("overrides_label", "")})
     return summary

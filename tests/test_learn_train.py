@@ -79,6 +79,15 @@ def test_training_resumes_from_the_last_checkpoint(data_dir, tmp_path):
     assert summary["epochs_run"] == 5 and [h["epoch"] for h in resumed["history"]] == [0, 1, 2, 3, 4]
 
 
+def test_a_time_limited_run_pauses_and_continues_with_a_larger_limit(data_dir, tmp_path):
+    first = train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=3", "time_limit_min=1e-6", "batch_size=1")))
+    assert first["stop"].startswith("time limit") and first["epochs_run"] == 1
+    assert not checkpoint.load(tmp_path / "last.pt")["finished"]
+    second = train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=3", "batch_size=1")))
+    assert second["stop"] == "epochs" and second["epochs_run"] == 3
+    assert [r["epoch"] for r in checkpoint.load(tmp_path / "last.pt")["history"]] == [0, 1, 2]
+
+
 def test_rollout_returns_every_frame_of_finite_points(trained, data_dir):
     run, _ = trained
     model = checkpoint.load_model(run / "best.pt")
