@@ -103,7 +103,7 @@ def evaluate(cfg: DictConfig) -> dict:
         r = rollout(model, f, steps=f.n_frames - 1, t=f.t)
         err = np.linalg.norm(r.local_points - f.fea_points, axis=-1)  # [F, P]
         floor = np.linalg.norm(reference(f).local_points - f.fea_points, axis=-1)
-        verdict = check(model, r, **OmegaConf.to_container(cfg.validity))
+        verdict = check(model, r, **OmegaConf.to_container(cfg.validity), envelope=ckpt.get("envelope"))
         designs.append({
             "name": f.name, "family": f.family, "design_size_mm": f.design_size,
             "max_rel_error": float(err.max() / f.design_size), "mean_rel_error": float(err.mean() / f.design_size),

@@ -4,11 +4,12 @@ Node-index specs below address a block's node grid: 0 = first, "mid" = middle (n
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
+from learn.conditions import episode_conditions
 from learn.graph import (BEAM, BEAM_KINDS, BOX_CORNERS, JOINT, JOINT_CORNER_IJ, JOINT_CORNERS, SECTION_CORNER_JK,
                          SECTION_CORNERS, SECTIONS, Incidence, Term)
 
@@ -88,6 +89,7 @@ class EpisodeFeatures:
     origin: np.ndarray  # [3] the translation removed (fixed joint reference centre, mm)
     point_nodes: np.ndarray  # [P] FEA node id of every rebuilt point: joints' JOINT_POINTS, then beams' BEAM_POINTS
     fea_points: np.ndarray  # [F, P, 3] FEA positions of those nodes, translated like the features
+    conditions: dict = field(default_factory=dict)  # learn.conditions.episode_conditions: physics not in the graph
 
     @property
     def n_frames(self) -> int:
@@ -105,7 +107,8 @@ class EpisodeFeatures:
             t=self.t, incidence=self.incidence,
             joint_state=state(self.joint_state, JOINT), beam_state=state(self.beam_state, BEAM),
             joint_bc=rotate_term(self.joint_bc, JOINT.bc, R), beam_bc=rotate_term(self.beam_bc, BEAM.bc, R),
-            origin=self.origin, point_nodes=self.point_nodes, fea_points=rotate_vectors(self.fea_points, R))
+            origin=self.origin, point_nodes=self.point_nodes, fea_points=rotate_vectors(self.fea_points, R),
+            conditions=self.conditions)
 
 
 def rebuild_all_points(joint_state, beam_state):
@@ -235,4 +238,5 @@ def extract(ep, name: str = "") -> EpisodeFeatures:
         joint_state=np.concatenate([jg, js], -1).astype(np.float32),
         beam_state=np.concatenate([bg, bs], -1).astype(np.float32),
         joint_bc=jbc.astype(np.float32), beam_bc=bbc.astype(np.float32), origin=origin,
-        point_nodes=point_nodes, fea_points=pos[:, point_nodes].astype(np.float32))
+        point_nodes=point_nodes, fea_points=pos[:, point_nodes].astype(np.float32),
+        conditions=episode_conditions(ep.config_yaml, ep.joint_xy, ep.beams))

@@ -13,6 +13,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from learn import checkpoint
+from learn.conditions import envelope
 from learn.dataset import GraphSet, augment, episode_paths, load_features, split_names
 from learn.metrics import multistep_loss, rollout_errors
 from learn.model import Simulator
@@ -77,6 +78,7 @@ def train(cfg: DictConfig) -> dict:
     if missing:
         raise FileNotFoundError(f"episodes of the checkpoint's split are missing from {cfg.data_dir}: {missing[:5]}")
     log.info("episodes: %s", {s: len(v) for s, v in split.items()})
+    train_envelope = envelope([by_name[n].conditions for n in split["train"]])  # physics the graphs do not carry
     train_set = GraphSet.build(augment([by_name[n] for n in split["train"]], cfg.rotations, cfg.seed))
     val_set = GraphSet.build([by_name[n] for n in split["val"] or split["train"]])
 
@@ -97,7 +99,8 @@ def train(cfg: DictConfig) -> dict:
     t0 = time.perf_counter() - (history[-1]["seconds"] if history else 0.0)
 
     def save(path: Path, epoch: int, finished: bool = False, summary: dict | None = None) -> None:
-        checkpoint.save(path, model, optimizer=opt.state_dict(), config=config, split=split, epoch=epoch,
+        checkpoint.save(path, model, optimizer=opt.state_dict(), config=config, split=split, envelope=train_envelope,
+                        epoch=epoch,
                         best=best, bad_epochs=bad, history=history, finished=finished, summary=summary or {})
 
     epoch = start - 1

@@ -4,7 +4,9 @@ Two symptoms, both measurable without FEA:
 - dislocation: a beam's end cross-section and its joint each rebuild the shared interface nodes; when the two
   predictions drift apart the blocks no longer form one solid;
 - out of range: a block's PCA coefficients leave the range seen in training (widened by a margin), so the
-  networks extrapolate.
+  networks extrapolate;
+- conditions: the episode's material, residual stress, body force, mesh or design size lie outside those of the
+  training episodes (learn.conditions). The graphs do not carry them, so the other two checks cannot see them.
 """
 from __future__ import annotations
 
@@ -13,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from learn.conditions import REL_TOL, outside
 from learn.features import shared_point_pairs
 from learn.model import Simulator, static_from
 from learn.rollout import Rollout
@@ -58,9 +61,13 @@ def out_of_range(model: Simulator, r: Rollout, margin: float) -> np.ndarray:
 
 
 def check(model: Simulator, r: Rollout, max_dislocation_mm: float = 1.0, range_margin: float = 0.25,
-          max_out_of_range: float = 0.0) -> Verdict:
-    """Verdict on one rollout; invalid when any frame breaks a threshold or any value is not finite."""
-    reasons = []
+          max_out_of_range: float = 0.0, envelope: dict | None = None, condition_tolerance: float = REL_TOL) -> Verdict:
+    """Verdict on one rollout; invalid when any frame breaks a threshold, any value is not finite, or the episode's
+    conditions (material, residual stress, body force, mesh, design size) lie outside the training `envelope`
+    (stored in the checkpoint by learn.train) by more than `condition_tolerance`, relative."""
+    reasons = [f"conditions outside training: {why}"
+               for why in outside(r.features.conditions, envelope or {}, condition_tolerance)]
+    off_conditions = bool(reasons)
     finite = np.isfinite(r.points).all(axis=(1, 2))
     disl = np.where(finite, dislocation(r), np.inf)
     oor = np.where(finite, out_of_range(model, r, range_margin), 1.0)
@@ -75,6 +82,6 @@ def check(model: Simulator, r: Rollout, max_dislocation_mm: float = 1.0, range_m
         k = int(np.argmax(oor > max_out_of_range))
         reasons.append(f"{100 * oor[k]:.0f}% of blocks outside the training feature range at frame {k} "
                        f"(margin {range_margin} of the range)")
-    return Verdict(valid=not bad.any(), reasons=reasons, max_dislocation_mm=float(disl.max()),
+    return Verdict(valid=not bad.any() and not off_conditions, reasons=reasons, max_dislocation_mm=float(disl.max()),
                    dislocation_per_frame=[float(d) for d in disl], out_of_range_fraction=float(oor.max()),
-                   first_bad_frame=int(np.argmax(bad)) if bad.any() else None)
+                   first_bad_frame=0 if off_conditions else int(np.argmax(bad)) if bad.any() else None)

@@ -105,8 +105,13 @@ def test_validity_passes_a_clean_rollout_and_flags_a_corrupted_one(trained, data
     cfg = ckpt["config"]
     train_items = augment(load_features([data_dir / n for n in ckpt["split"]["train"]]), cfg["rotations"], cfg["seed"])
     clean = reference(train_items[0])  # FEA of a training item: interfaces closed, features in range
-    ok = check(model, clean, max_dislocation_mm=1.0, range_margin=0.25)
+    ok = check(model, clean, max_dislocation_mm=1.0, range_margin=0.25, envelope=ckpt["envelope"])
     assert ok.valid, ok.reasons
+    assert ckpt["envelope"]["design.n_joints"] == [9.0, 9.0]  # the training envelope travels with the model
+    hotter = {**ckpt["envelope"], "scene.g": [1000.0, 1000.0]}  # trained at another body force
+    clean.features.conditions = {**clean.features.conditions, "scene.g": 9810.0}
+    off = check(model, clean, envelope=hotter)
+    assert not off.valid and off.first_bad_frame == 0 and off.reasons[0].startswith("conditions outside training: scene.g")
     torn = reference(train_items[0])
     torn.beam_states = torn.beam_states.copy()
     torn.beam_states[6:, 3, BEAM.geometry.slice("start_center")] += np.float32(4.0)  # tear beam 3 off its joint
