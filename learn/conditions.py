@@ -13,7 +13,7 @@ import yaml
 # provenance config entries that change the physics but not the initial graph
 PHYSICS_KEYS = ("material.law", "material.poisson", "material.density", "material.residual_stress.sigma",
                 "material.residual_stress.joint_model", "scene.residual_stress", "scene.gravity", "scene.buoyancy",
-                "scene.g", "scene.fluid_density", "mesh.nodes_length", "mesh.nodes_width", "mesh.nodes_thickness")
+                "scene.g", "scene.fluid_density", "mesh.nodes_length", "mesh.nodes_width", "mesh.nodes_height")
 REL_TOL = 0.05  # a number within 5 % of the training range counts as inside it
 
 
