@@ -54,9 +54,9 @@ stability:  ## stability matrix at the extremes (reports/stability/; ~9 min)
 bench-fea:  ## FEA benchmark table + plot (reports/bench_fea/)
 	$(PY) scripts/bench_fea.py --out reports/bench_fea
 
-tradeoff:  ## speed/accuracy trade (PANEL=reduced|full, CHECKPOINTS=a.pt,.., INSTALL=1: conf/solver/tradeoff_table.csv)
+tradeoff:  ## speed/accuracy trade (PANEL=reduced|full, CHECKPOINTS=a.pt,.., INSTALL=1: conf/solver/tradeoff_table.csv, RESUME=1)
 	$(PY) scripts/tradeoff.py --panel $(PANEL) --out $(TRADEOFF_OUT) $(if $(CHECKPOINTS),--checkpoints $(CHECKPOINTS)) \
-		$(if $(INSTALL),--install)
+		$(if $(INSTALL),--install) $(if $(RESUME),--resume)
 
 learned-extremes:  ## learned simulator on FEA designs outside its training ranges (CKPT=runs/train/best.pt; reports/learned_extremes/)
 	$(PY) scripts/learned_extremes.py --checkpoint $(or $(CKPT),runs/train/best.pt) --out reports/learned_extremes --jobs $(JOBS)

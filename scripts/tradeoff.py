@@ -197,6 +197,22 @@ def write_csv(path: Path, rows: list[dict]) -> None:
         w.writerows({k: _fmt(r.get(k)) for k in COLUMNS} for r in rows)
 
 
+NUMERIC = ("design_size_mm", "ranks", "wall_s", "process_s", "newton", "increments_taken", "cutbacks", "peak_mb",
+           "nodes", "cells", "max_rel_error", "mean_rel_error", "max_error_mm")
+
+
+def read_csv(path: Path) -> list[dict]:
+    """Rows as write_csv wrote them, numbers back as floats (empty: NaN; ranks: int), for --resume."""
+    rows = []
+    with open(path, newline="") as f:
+        for r in csv.DictReader(f):
+            for k in NUMERIC:
+                r[k] = math.nan if r.get(k) in ("", None) else float(r[k])
+            r["ranks"] = int(r["ranks"]) if math.isfinite(r["ranks"]) else r["ranks"]
+            rows.append(r)
+    return rows
+
+
 def _fmt(v) -> str:
     if v is None or (isinstance(v, float) and math.isnan(v)):
         return ""
@@ -355,6 +371,9 @@ def main() -> None:
     ap.add_argument("--note", default="", help="a line on the conditions (e.g. machine load) for summary and table")
     ap.add_argument("--list", action="store_true", help="print the planned runs and exit")
     ap.add_argument("--keep", action="store_true", help="keep the episode files (temporary directory)")
+    ap.add_argument("--resume", action="store_true",
+                    help="reuse the finished FEA runs of OUT/tradeoff.csv and run only the missing ones (a long panel "
+                         "over several sittings, same machine); reference episodes are kept in OUT/episodes")
     args = ap.parse_args()
     designs, settings = panel(args.panel, args.reference)
     reference = settings[0]
@@ -370,7 +389,13 @@ def main() -> None:
             raise SystemExit(f"--checkpoints: {c} does not exist")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix="tradeoff_"))
+    tmp = out / "episodes" if args.resume else Path(tempfile.mkdtemp(prefix="tradeoff_"))
+    tmp.mkdir(parents=True, exist_ok=True)
+    prior = {}  # (design, setting) -> row of an earlier sitting (--resume); learned rows are always recomputed
+    if args.resume and (out / "tradeoff.csv").exists():
+        prior = {(r["design"], r["setting"]): r for r in read_csv(out / "tradeoff.csv")
+                 if r["kind"] == "fea" and r["status"] != "skipped"}
+        print(f"resuming: {len(prior)} finished FEA runs in {out / 'tradeoff.csv'}", flush=True)
     load_before = "/".join(f"{x:.2f}" for x in os.getloadavg())
     t_start = time.perf_counter()
     rows, designs_info, refs = [], [], {}
@@ -389,6 +414,16 @@ def main() -> None:
                 rows.append({**fea_row(pd, design, s, {"status": "skipped"}), "reason": "the reference run failed"})
                 continue
             ep_file = tmp / f"{pd.name}__{s.name.replace('/', '_')}.h5"
+            old = prior.get((pd.name, s.name))
+            if old is not None and (s != reference or ep_file.exists()):  # finished in an earlier sitting
+                from data_schema.episode import read_episode
+
+                if s == reference:
+                    refs[pd.name] = read_episode(ep_file)
+                if old["status"] == "ok" and math.isfinite(old["process_s"]):
+                    done.append((s, old["process_s"]))
+                rows.append(old)
+                continue
             cap = time_cap(s, done, args.dominated)
             timeout = args.timeout if cap is None else min(args.timeout, cap[0])
             res = run_solve(design_file, ep_file, s.overrides(), ranks=s.ranks, timeout=timeout)
@@ -457,7 +492,7 @@ def main() -> None:
             "max_rel_error: worst over the designs of the max joint-corner error / design size; wall_s: mean solver "
             "wall time; reference = 1: on the reference mesh (error is a lower bound, never picked)"])
         print(f"installed {path}")
-    if not args.keep:
+    if not args.keep and not args.resume:
         shutil.rmtree(tmp, ignore_errors=True)
     else:
         print(f"episodes kept in {tmp}")

@@ -226,6 +226,29 @@ def test_report_plot_summary_and_install_from_synthetic_rows(tmp_path):
     assert pick(read_table(path), 0.02)["setting"] == "default/adaptive/direct/n1"
 
 
+def test_csv_round_trip_for_resume_gives_the_same_summary(tmp_path):
+    script = load_script()
+    rows = [{"design": "a", "design_size_mm": 120.0, "setting": s.name, "kind": "fea", "mesh": s.mesh,
+             "increments": s.increments, "linear_solver": s.linear_solver, "ranks": s.ranks, "status": status,
+             "wall_s": wall, "process_s": wall + 1.0, "newton": 50.0, "peak_mb": 300.0, "max_rel_error": err,
+             "mean_rel_error": err / 3, "max_error_mm": err * 120.0, "reason": reason}
+            for s, wall, err, status, reason in ((Setting("fine"), 100.0, 0.0, "ok", ""),
+                                                 (Setting("coarse"), 5.0, 0.03, "ok", ""),
+                                                 (Setting("default", ranks=2), 8.0, 0.01, "ok", ""),
+                                                 (Setting("default", "fixed10"), math.nan, math.nan, "diverged",
+                                                  "residual is NaN/Inf"))]
+    script.write_csv(tmp_path / "t.csv", rows)
+    back = script.read_csv(tmp_path / "t.csv")
+    assert [r["status"] for r in back] == ["ok", "ok", "ok", "diverged"] and back[2]["ranks"] == 2
+    assert math.isnan(back[3]["wall_s"]) and back[3]["reason"] == "residual is NaN/Inf"
+    want = script.summarize(rows, Setting("fine"), "fine")
+    got = script.summarize(back, Setting("fine"), "fine")
+    assert [(t["setting"], t["pareto"]) for t in got] == [(t["setting"], t["pareto"]) for t in want]
+    for a, b in zip(got, want):
+        assert a["max_rel_error"] == pytest.approx(b["max_rel_error"], rel=1e-3, nan_ok=True)
+        assert a["wall_s"] == pytest.approx(b["wall_s"], rel=1e-3, nan_ok=True)
+
+
 def test_learned_row_compares_the_rollout_joint_corners(tmp_path):
     """scripts/tradeoff.py's learned rows on a synthetic episode with an (untrained) fitted simulator."""
     torch = pytest.importorskip("torch")
