@@ -3,8 +3,8 @@ accuracy (mesh preset, load increments, linear solver, MPI ranks) and optionally
 against the finest FEA reference of the same run.
 
     .venv/bin/python scripts/tradeoff.py [--panel reduced|full] [--out reports/tradeoff]
-                                         [--checkpoints runs/train/best.pt,...] [--install] [--list]
-    make tradeoff [PANEL=full] [OUT=...] [CHECKPOINTS=a.pt,b.pt] [INSTALL=1]
+                                         [--checkpoints runs/train/best.pt,...] [--install] [--list] [--resume]
+    make tradeoff [PANEL=full] [OUT=...] [CHECKPOINTS=a.pt,b.pt] [INSTALL=1] [RESUME=1]
 
 Writes OUT/tradeoff.csv (one row per design and setting), OUT/pareto.png (mean wall time vs worst max error per
 setting, log axes, Pareto front marked and labelled) and OUT/summary.md (machine, command, tables, the cheapest
