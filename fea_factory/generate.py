@@ -27,6 +27,7 @@ from omegaconf import DictConfig, OmegaConf
 from fea_factory.design import Design
 from fea_factory.material import make_material
 from fea_factory.mesh import MeshPreset
+from fea_factory.residual_stress import check_residual_stress
 from fea_factory.scene import Scene
 from fea_factory.solve import EXIT_DIVERGED
 from fea_factory.solver import SolverSettings
@@ -56,6 +57,7 @@ def check_config(cfg: DictConfig) -> None:
     MeshPreset.from_mapping(cfg.mesh)
     SolverSettings.from_mapping(cfg.solver)
     make_material(cfg.material)
+    check_residual_stress(cfg.material.residual_stress)
     Scene.from_mapping(cfg.scene)
 
 

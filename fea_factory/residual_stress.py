@@ -24,6 +24,17 @@ def print_direction(angle_deg: np.ndarray) -> np.ndarray:
     return np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], axis=-1)
 
 
+def check_residual_stress(rs) -> float:
+    """sigma (MPa) of a conf/material residual_stress mapping, refused outside [0, sigma_max] (the largest value
+    the stability matrix verified; sigma itself when the material gives no sigma_max)."""
+    sigma = float(rs["sigma"])
+    sigma_max = float(rs.get("sigma_max", sigma))
+    if not 0.0 <= sigma <= sigma_max:
+        raise ValueError(f"material.residual_stress.sigma = {rs['sigma']} MPa: must lie in [0, {sigma_max}] "
+                         "(material.residual_stress.sigma_max, the largest value verified stable)")
+    return sigma
+
+
 def initial_stress(print_angle: np.ndarray, is_joint: np.ndarray, sigma: float, joint_model: str) -> np.ndarray:
     """S0 per cell [C, 3, 3]: sigma d (x) d in beams; joints per `joint_model` (see conf/material)."""
     if joint_model not in JOINT_MODELS:

@@ -22,6 +22,7 @@ import numpy as np
 from fea_factory.design import Design, DesignLimits, validate
 from fea_factory.material import make_material
 from fea_factory.mesh import MeshPreset, build_keyed_mesh
+from fea_factory.residual_stress import check_residual_stress
 from fea_factory.scene import Scene
 from fea_factory.solver import GridSolver, SolveFailure, SolverSettings, prestress_for
 from fea_factory.tradeoff import TradeoffError, apply_tolerance
@@ -62,11 +63,7 @@ def solve_design(design: Design, cfg, comm, progress=None):
     scene = Scene.from_mapping(cfg.scene)
     settings = SolverSettings.from_mapping(cfg.solver)
     rs = cfg.material.residual_stress
-    sigma_max = float(rs.get("sigma_max", float(rs.sigma)))
-    if not 0.0 <= float(rs.sigma) <= sigma_max:
-        raise ValueError(f"material.residual_stress.sigma = {rs.sigma} MPa: must lie in [0, {sigma_max}] "
-                         "(material.residual_stress.sigma_max, the largest value verified stable)")
-    S0 = prestress_for(keyed, design, float(rs.sigma), str(rs.joint_model))
+    S0 = prestress_for(keyed, design, check_residual_stress(rs), str(rs.joint_model))
     solver = GridSolver(design, keyed, material, scene, S0, scene.body_force(float(cfg.material.density)),
                         settings, comm)
     solver.stats["wall_mesh_s"] += t_keyed

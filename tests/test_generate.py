@@ -44,6 +44,7 @@ def test_generate_config_composes_with_every_launcher():
                                              ("jobs=0", "jobs"), ("solver.save_every=7", "solver.save_every"),
                                              ("material.poisson=0.5", "material.poisson"),
                                              ("scene.fixed_face=false", "fixed_face"),
+                                             ("material.residual_stress.sigma=0.25", "material.residual_stress.sigma"),
                                              ("shard=3", "shard")])
 def test_invalid_config_is_refused_before_any_solve(tmp_path, override, field):
     r = generate(tmp_path / "ds", "n=1", override)
