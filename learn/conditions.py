@@ -8,7 +8,7 @@ outside those of the training episodes. Numbers compare within a relative tolera
 from __future__ import annotations
 
 import numpy as np
-import yaml
+from omegaconf import OmegaConf
 
 # provenance config entries that change the physics but not the initial graph
 PHYSICS_KEYS = ("material.law", "material.poisson", "material.density", "material.residual_stress.sigma",
@@ -17,19 +17,11 @@ PHYSICS_KEYS = ("material.law", "material.poisson", "material.density", "materia
 REL_TOL = 0.05  # a number within 5 % of the training range counts as inside it
 
 
-def _get(cfg: dict, dotted: str):
-    for key in dotted.split("."):
-        if not isinstance(cfg, dict) or key not in cfg:
-            return None
-        cfg = cfg[key]
-    return cfg
-
-
 def episode_conditions(config_yaml: str, joint_xy: np.ndarray, beams: np.ndarray) -> dict:
     """{name: number | str | [lo, hi]} of one episode: the PHYSICS_KEYS of its resolved config (missing ones left
     out), the design's joint count and the range of its beams' centre-to-centre lengths (mm)."""
-    cfg = (yaml.safe_load(config_yaml) if config_yaml else None) or {}
-    out = {k: v for k in PHYSICS_KEYS if (v := _get(cfg, k)) is not None}
+    cfg = OmegaConf.create(config_yaml or {})
+    out = {k: v for k in PHYSICS_KEYS if (v := OmegaConf.select(cfg, k)) is not None}
     out = {k: (float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else str(v)) for k, v in out.items()}
     xy, pairs = np.asarray(joint_xy, float), np.asarray(beams, int)[:, :2]
     lengths = np.linalg.norm(xy[pairs[:, 0]] - xy[pairs[:, 1]], axis=1)
