@@ -58,10 +58,9 @@ DESIGNS = {"bench": bench_design, "strip_short": lambda: strip(10.0), "strip_lon
 
 CASES = [
     Case("sigma_0", "residual stress", "0 (gravity only)", ["material.residual_stress.sigma=0.0"]),
-    Case("sigma_1x", "residual stress", "1x (0.0658 MPa)", []),
+    Case("sigma_1x", "residual stress", f"1x ({NOMINAL_SIGMA} MPa)", []),
     Case("sigma_2x", "residual stress", "2x", [f"material.residual_stress.sigma={2 * NOMINAL_SIGMA}"]),
-    Case("sigma_3x", "residual stress", "3x", [f"material.residual_stress.sigma={3 * NOMINAL_SIGMA}"],
-),
+    Case("sigma_3x", "residual stress", "3x", [f"material.residual_stress.sigma={3 * NOMINAL_SIGMA}"]),
     Case("nu_0.45", "bulk/shear", "nu 0.45 (K/mu 9.7)", ["material.poisson=0.45"]),
     Case("nu_0.499", "bulk/shear", "nu 0.499 (K/mu 500)", ["material.poisson=0.499"]),
     Case("nu_0.4999", "bulk/shear", "nu 0.4999 (K/mu 5000)", ["material.poisson=0.4999"]),
