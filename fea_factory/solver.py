@@ -41,6 +41,8 @@ class SolverSettings:
     line_search: str = "basic"
     linear_solver: str = "direct"
     predictor: str = "linear"
+    stabilize: bool = True
+    stabilize_max_steps: int = 200
     jit_compile_args: tuple = ("-O3", "-march=native", "-g0")  # as conf/solver/default.yaml
 
     def __post_init__(self) -> None:
@@ -57,6 +59,7 @@ class SolverSettings:
             ("newton.line_search", self.line_search in ("basic", "bt"), "basic | bt (cp and l2 diverge here)"),
             ("linear_solver", self.linear_solver in ("direct", "iterative"), "direct | iterative"),
             ("predictor", self.predictor in ("linear", "none"), "linear | none"),
+            ("stabilize_max_steps", 1 <= self.stabilize_max_steps <= 10000, "in [1, 10000]"),
         ]
         for name, ok, allowed in checks:
             if not ok:
@@ -205,6 +208,9 @@ class GridSolver:
         jit = {"cffi_extra_compile_args": list(s.jit_compile_args)}
         self.R_form, self.K_form = fem.form(R, jit_params=jit), fem.form(K, jit_params=jit)
         self.Pi_form = fem.form(Pi, jit_params=jit) if s.line_search != "basic" else None
+        self._plain_forms = (self.R_form, self.K_form, self.Pi_form)
+        self._energy_parts = (Pi, dx, jit)  # the stabilized forms are built from these when first needed
+        self._stabilized_forms = None
         self.bcs = [self._fixed_face_bc() if self.clamp == "top_face" else self._fixed_block_bc()]
         # outputs: Cauchy stress at Gauss points, node values through a Q1 space
         qp, qw = basix.make_quadrature(basix.CellType.hexahedron, s.stress_quadrature_degree)
@@ -399,7 +405,7 @@ class GridSolver:
         while next_frames:
             target = next_frames[0]
             dt = min(dt, target - t_now)
-            cut = 0
+            cut, crossed = 0, False
             while True:
                 x_backup.copy(self.u.vector)  # restart from the last converged state (petsc: a.copy(b) is b <- a)
                 if dt_prev and s.predictor == "linear":  # extrapolate along the load path: u + dt/dt_prev (u - u_prev)
@@ -425,6 +431,19 @@ class GridSolver:
                 why = SNES_REASONS.get(reason, f"SNES reason {reason}") if finite else "non-finite displacement"
                 cut += 1
                 self.stats["cutbacks"] += 1
+                if (cut > s.max_cutbacks or not s.adaptive) and s.stabilize and s.adaptive:
+                    # no equilibrium within reach of the last one: an instability (snap-through); cross it
+                    # with damped steps and go on from the undamped equilibrium on the other side
+                    x_backup.copy(self.u.vector)
+                    log.info("increment at t=%.4g failed %d times (%s); crossing with stabilized steps",
+                             t_now + dt, cut, why)
+                    try:
+                        t_new, its = self._cross_instability(t_now, target, why)
+                    except SolveFailure:
+                        self.stats["wall_solve_s"] = time.perf_counter() - t_start
+                        raise
+                    dt, crossed = t_new - t_now, True
+                    break
                 if cut > s.max_cutbacks or not s.adaptive:
                     self.stats["wall_solve_s"] = time.perf_counter() - t_start
                     raise SolveFailure(why, t_now + dt, dt, increment, history)
@@ -434,7 +453,7 @@ class GridSolver:
             increment += 1
             x_backup.copy(u_prev)
             self.u.vector.copy(x_backup)
-            dt_prev = dt
+            dt_prev = None if crossed else dt  # a jump to another branch is no path to extrapolate
             t_now = t_now + dt
             self.stats["increment_t"].append(t_now)
             self.stats["newton_iterations"].append(its)
@@ -444,7 +463,9 @@ class GridSolver:
                 self._save(frames, target)
                 if progress:
                     progress(target)
-            if s.adaptive and its <= s.easy_iterations and cut == 0:
+            if crossed:
+                dt = dt_max / 2 ** (s.max_cutbacks // 2)  # feel the way forward from the new branch
+            elif s.adaptive and its <= s.easy_iterations and cut == 0:
                 dt = min(dt * s.grow, dt_max)
             elif not s.adaptive:
                 dt = dt_nominal
@@ -452,6 +473,89 @@ class GridSolver:
         self.stats["increments"] = increment
         self.stats["newton_total"] = int(sum(self.stats["newton_iterations"]))
         return frames
+
+    # ------------------------------------------------------------------------- crossing instabilities
+    def _use_stabilized(self, on: bool) -> None:
+        """Switch the residual and tangent between Pi and Pi + alpha/2 ||u - u_n||^2 (a spring of stiffness
+        density alpha tying u to the last accepted state u_n: the backward-Euler step of a viscous medium,
+        Abaqus' *STATIC, STABILIZE). Built (JIT) the first time an episode needs it."""
+        if on and self._stabilized_forms is None:
+            import ufl
+            from dolfinx import fem
+            from petsc4py import PETSc
+
+            Pi, dx, jit = self._energy_parts
+            self.u_n = fem.Function(self.V, name="last_accepted")
+            self.alpha = fem.Constant(self.msh, PETSc.ScalarType(0.0))
+            spring = 0.5 * self.alpha * ufl.inner(self.u - self.u_n, self.u - self.u_n) * dx
+            Pis = Pi + spring
+            R = ufl.derivative(Pis, self.u, ufl.TestFunction(self.V))
+            K = ufl.derivative(R, self.u, ufl.TrialFunction(self.V))
+            self._stabilized_forms = (fem.form(R, jit_params=jit), fem.form(K, jit_params=jit),
+                                      fem.form(Pis, jit_params=jit) if self.Pi_form is not None else None)
+            self._spring_form = fem.form(2.0 * spring, jit_params=jit)  # alpha ||u - u_n||^2: energy dissipated
+        self.R_form, self.K_form, self.Pi_form = self._stabilized_forms if on else self._plain_forms
+
+    def _newton(self) -> tuple[bool, int]:
+        """Solve at the current t from the current u; (converged to finite values, Newton iterations)."""
+        self.snes.solve(None, self.u.vector)
+        ok = self.snes.getConvergedReason() > 0 and np.isfinite(self.u.vector.norm())
+        return ok, self.snes.getIterationNumber()
+
+    def _cross_instability(self, t_now: float, target: float, why: str) -> tuple[float, int]:
+        """From the equilibrium at t_now, where plain increments find no equilibrium nearby, take damped steps
+        (see _use_stabilized) towards `target` (a frame time, never passed), after each one trying the plain
+        equilibrium at the same t; return (t of the first plain equilibrium reached, Newton iterations).
+
+        alpha starts at the bending stiffness scale of the design's beams, mu0 h^2 / L^4, and grows x10 when a
+        damped step fails, / 2 when one succeeds. Frames are saved only at plain equilibria, so the data stays
+        the undamped problem's; the energy the damper dissipated is recorded (stats "stabilized")."""
+        from dolfinx.fem import assemble_scalar
+        from mpi4py import MPI
+
+        s = self.settings
+        h, L = self.design.thickness, max(self.design.size, 1.0)
+        alpha0 = self.material.mu0 * h ** 2 / L ** 4
+        alpha, alpha_max = alpha0, alpha0 * 1e8
+        dt = (target - t_now) / 8
+        t, its_total = t_now, 0
+        rec = self.stats.setdefault("stabilized", {"crossings": 0, "steps": 0, "failed_steps": 0,
+                                                   "dissipated_mJ": 0.0, "t": []})
+        rec["crossings"] += 1
+        accepted = self.u.vector.copy()
+        for _ in range(s.stabilize_max_steps):
+            self._use_stabilized(True)
+            accepted.copy(self.u_n.vector)
+            self.u_n.x.scatter_forward()
+            self.alpha.value = alpha
+            step = min(dt, target - t)
+            self.t.value = t + step
+            ok, its = self._newton()
+            its_total += its
+            if not ok:
+                rec["failed_steps"] += 1
+                accepted.copy(self.u.vector)
+                alpha *= 10.0
+                if alpha > alpha_max:
+                    break
+                continue
+            rec["steps"] += 1
+            rec["dissipated_mJ"] += self.comm.allreduce(assemble_scalar(self._spring_form), op=MPI.SUM)
+            t += step
+            self.u.vector.copy(accepted)
+            alpha = max(alpha / 2.0, alpha0)
+            # is there a plain equilibrium here?
+            self._use_stabilized(False)
+            ok, its = self._newton()
+            its_total += its
+            if ok:
+                rec["t"].append([round(t_now, 6), round(t, 6)])
+                return t, its_total
+            accepted.copy(self.u.vector)
+        self._use_stabilized(False)
+        accepted.copy(self.u.vector)
+        raise SolveFailure(f"{why}; stabilized steps from t = {t_now:.5g} found no undamped equilibrium "
+                           f"(reached t = {t:.5g}, alpha {alpha / alpha0:.3g} x mu0 h^2 / L^4)", t, dt, 0, [])
 
     def _save(self, frames: Frames, t: float) -> None:
         t0 = time.perf_counter()

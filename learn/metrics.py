@@ -18,9 +18,15 @@ def column_weights(block, stress_weight: float) -> torch.Tensor:
 
 
 def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_std: float = 0.0,
-                   stress_weight: float = 1.0, generator: torch.Generator | None = None) -> torch.Tensor:
-    """Mean squared error of the states after 1..horizon steps from every start frame, in units of the per-column
-    step std; `noise_std` (same units) perturbs the start states so the model learns to correct its own drift."""
+                   stress_weight: float = 1.0, generator: torch.Generator | None = None,
+                   geometry: str = "columns") -> torch.Tensor:
+    """Mean squared error of the states after 1..horizon steps from every start frame; `noise_std` (in units of
+    the per-column step std) perturbs the start states so the model learns to correct its own drift.
+    geometry="columns": every state column in units of its step std (stress columns weighted by stress_weight);
+    geometry="points": the geometry as the points it rebuilds (what the evaluation measures), their distance to
+    the FEA's in units of the mean geometry step std, plus the stress columns as above."""
+    if geometry not in ("columns", "points"):
+        raise ValueError(f"loss geometry={geometry!r}: must be columns | points")
     F = len(batch.t)
     h = max(1, min(int(horizon), F - 1))
     S = F - h  # start frames 0 .. F-1-h
@@ -28,13 +34,21 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
     if noise_std > 0:
         j = j + noise_std * model.joint_delta.std * torch.randn(j.shape, generator=generator)
         b = b + noise_std * model.beam_delta.std * torch.randn(b.shape, generator=generator)
+    points = geometry == "points"
     wj, wb = column_weights(JOINT, stress_weight), column_weights(BEAM, stress_weight)
+    if points:
+        wj[JOINT.geometry_slice], wb[BEAM.geometry_slice] = 0.0, 0.0
+        scale = torch.cat([model.joint_delta.std[JOINT.geometry_slice], model.beam_delta.std[BEAM.geometry_slice]])
+        scale = scale.mean()
     loss = torch.zeros(())
     for k in range(h):
         j, b = model.step(j, b, batch.static, batch.t[k:S + k])
-        ej = (j - batch.joint_state[k + 1:S + k + 1]) / model.joint_delta.std
-        eb = (b - batch.beam_state[k + 1:S + k + 1]) / model.beam_delta.std
+        tj, tb = batch.joint_state[k + 1:S + k + 1], batch.beam_state[k + 1:S + k + 1]
+        ej, eb = (j - tj) / model.joint_delta.std, (b - tb) / model.beam_delta.std
         loss = loss + (wj * ej ** 2).mean() + (wb * eb ** 2).mean()
+        if points:
+            d = (rebuild_all_points(j, b) - rebuild_all_points(tj, tb)) / scale
+            loss = loss + d.square().sum(-1).mean()
     return loss / h
 
 

@@ -7,7 +7,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from learn import frames
+from learn import frames, kinematics
 from learn.gn import GNBlock
 from learn.graph import BEAM, JOINT, Block, GraphIndex
 from learn.pca import Normalizer, TermPCA
@@ -60,6 +60,13 @@ class Static:
     joint_bc: torch.Tensor  # [J, JOINT.bc.size]
     beam_bc: torch.Tensor  # [B, BEAM.bc.size]
     index: GraphIndex
+    tree: kinematics.Tree | None = None  # built on first use by the kinematic update
+
+    def kinematic_tree(self) -> kinematics.Tree:
+        if self.tree is None:
+            fixed = self.joint_bc[..., JOINT.bc.slice("fixed")].detach().cpu().numpy()
+            self.tree = kinematics.tree(self.index, fixed)
+        return self.tree
 
 
 def _point_mask(block: Block) -> torch.Tensor:
@@ -96,7 +103,9 @@ class Simulator(nn.Module):
           to the fixed joint; "current": its current one),
           frame ("global": features translated to each block's origin, as in the thesis; "local": also rotated
           into each block's own frame, updates predicted there, gravity given per block; implies a current
-          bc position), pca ({term: [D, K]} for every name in TERMS)
+          bc position), update ("additive": G(t+1) = G(t) + dG, the thesis; "kinematic": geometry updates are
+          predicted in each block's parent frame and placed outward from the fixed joint, learn/kinematics.py;
+          stress stays additive), pca ({term: [D, K]} for every name in TERMS)
           -- all plain types, so they are saved in checkpoints.
     """
 
@@ -104,10 +113,16 @@ class Simulator(nn.Module):
         super().__init__()
         self.args = dict(args)
         self.local = args.get("frame", "global") == "local"
+        self.kinematic = args.get("update", "additive") == "kinematic"
+        if args.get("update", "additive") not in ("additive", "kinematic"):
+            raise ValueError(f"model.update={args.get('update')!r}: must be additive | kinematic")
         self.pca = nn.ModuleDict({t: TermPCA(*args["pca"][t]) for t in TERMS})
         self.edge_norm = Normalizer(EDGE_FEATURES_LOCAL if self.local else EDGE_FEATURES)
         self.joint_delta = Normalizer(JOINT.state_size)
         self.beam_delta = Normalizer(BEAM.state_size)
+        if self.kinematic:  # geometry updates in the parent's frame (learn/kinematics.py)
+            self.joint_rel_delta = Normalizer(JOINT.geometry.size)
+            self.beam_rel_delta = Normalizer(BEAM.geometry.size)
         extra = (1 if args.get("time_input", True) else 0) + (3 if self.local else 0)
         joint_in = sum(self.pca[t].k for t in TERMS[:3]) + extra
         beam_in = sum(self.pca[t].k for t in TERMS[3:]) + extra
@@ -196,6 +211,8 @@ class Simulator(nn.Module):
         top face is glued to the support): a boundary condition applied outside the network."""
         R = self.frames(joint_state, beam_state)
         dj, db = self(joint_state, beam_state, static, t, R)
+        if self.kinematic:
+            return self._kinematic_step(joint_state, beam_state, static, dj, db, R)
         dj, db = self.joint_delta.inverse(dj), self.beam_delta.inverse(db)
         if self.local:
             dj = frames.rotate_state(dj, JOINT, R[0], to_local=False)
@@ -206,6 +223,28 @@ class Simulator(nn.Module):
             geometry[JOINT.geometry_slice] = 1.0
             dj = dj * (1.0 - geometry * (1.0 - free))
         return joint_state + dj, beam_state + db
+
+    def _kinematic_step(self, joint_state, beam_state, static: Static, dj, db, R):
+        """Geometry: each block's geometry in its parent's frame plus the predicted change, placed outward from the
+        fixed joint (learn/kinematics.py); stress: additive (predicted in the block's own frame R in local mode).
+        dj, db: normalised network outputs."""
+        tree = static.kinematic_tree()
+        G, Gb = JOINT.geometry_slice, BEAM.geometry_slice
+        d_rel_j = self.joint_rel_delta.inverse(dj[..., G])
+        if self.args.get("pin_fixed_joint", False):
+            d_rel_j = d_rel_j * (tree.joint_parent >= 0).to(d_rel_j)[:, None]
+        pose = kinematics.parent_pose(joint_state, beam_state, tree)
+        rel_j = kinematics.to_parent(joint_state[..., G], *pose[JOINT.name], JOINT) + d_rel_j
+        rel_b = kinematics.to_parent(beam_state[..., Gb], *pose[BEAM.name], BEAM) + \
+            self.beam_rel_delta.inverse(db[..., Gb])
+        roots = kinematics.from_parent(rel_j, *pose[JOINT.name], JOINT)  # only the roots' rows are used
+        jg, bg = kinematics.place(roots, rel_j, rel_b, tree)
+        dsj = self.joint_delta.inverse(dj)[..., JOINT.stress_slice]
+        dsb = self.beam_delta.inverse(db)[..., BEAM.stress_slice]
+        if self.local:
+            dsj, dsb = frames.rotate_stresses(dsj, R[0], False), frames.rotate_stresses(dsb, R[1], False)
+        js, bs = joint_state[..., JOINT.stress_slice] + dsj, beam_state[..., BEAM.stress_slice] + dsb
+        return torch.cat([jg, js], -1), torch.cat([bg, bs], -1)
 
     @classmethod
     def fit(cls, args: dict, joint_state: torch.Tensor, beam_state: torch.Tensor, static: Static,
@@ -227,6 +266,11 @@ class Simulator(nn.Module):
             groups = None if block is None else [block.geometry_slice, block.stress_slice]
             norm = Normalizer.fit(x.reshape(-1, x.shape[-1]).numpy(), delta_floor if block else 0.0, groups)
             getattr(model, name).load_state_dict(norm.state_dict())
+        if model.kinematic:
+            rj, rb = kinematics.relative(joint_state, beam_state, static.kinematic_tree())
+            for name, x in (("joint_rel_delta", rj.diff(dim=0)), ("beam_rel_delta", rb.diff(dim=0))):
+                norm = Normalizer.fit(x.reshape(-1, x.shape[-1]).numpy(), delta_floor)
+                getattr(model, name).load_state_dict(norm.state_dict())
         return model
 
     @property

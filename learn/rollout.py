@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from learn.features import EpisodeFeatures, extract, rebuild_all_points
-from learn.graph import GraphIndex
+from learn.graph import JOINT, GraphIndex
 from learn.model import Simulator, Static, static_from
 
 
@@ -43,13 +43,41 @@ def graph_inputs(f: EpisodeFeatures) -> tuple[torch.Tensor, ...]:
             s.index.senders, s.index.receivers, s.index.edge_beam, torch.as_tensor(f.t, dtype=torch.float32))
 
 
-def compile_rollout(model: Simulator, example: EpisodeFeatures) -> torch.jit.ScriptModule:
-    """A TorchScript rollout (traced on `example`, frozen): any graph, as many steps as `example` has frames - 1.
-    Same numbers as the eager rollout, a fraction of the Python overhead per step."""
+def _trace(model: Simulator, inputs: tuple[torch.Tensor, ...]) -> torch.jit.ScriptModule:
     with torch.inference_mode(False), torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore", torch.jit.TracerWarning)  # the step count and constant matrices are meant
-        traced = torch.jit.trace(_Unroll(model.eval()), graph_inputs(example), check_trace=False)
+        traced = torch.jit.trace(_Unroll(model.eval()), inputs, check_trace=False)
         return torch.jit.optimize_for_inference(torch.jit.freeze(traced.eval()))
+
+
+class CompiledRollout:
+    """TorchScript rollouts (traced, frozen), called like _Unroll with graph_inputs(f): the same numbers as the
+    eager rollout, a fraction of the Python overhead per step, as many steps as the traced example has frames - 1.
+    An additive model needs one trace for every graph; a kinematic model's placement order (learn/kinematics.py)
+    is baked into its trace, so it keeps one per graph (incidence and fixed joint), traced on first use."""
+
+    def __init__(self, model: Simulator, example: EpisodeFeatures):
+        self.model = model
+        self.traces: dict = {}
+        self(*graph_inputs(example))
+
+    def key(self, inputs: tuple[torch.Tensor, ...]):
+        if not self.model.kinematic:
+            return None
+        joint_bc, senders, receivers, edge_beam = inputs[2], inputs[4], inputs[5], inputs[6]
+        fixed = joint_bc[:, JOINT.bc.slice("fixed")]
+        return tuple(tuple(x.reshape(-1).tolist()) for x in (senders, receivers, edge_beam, fixed))
+
+    def __call__(self, *inputs: torch.Tensor):
+        key = self.key(inputs)
+        if key not in self.traces:
+            self.traces[key] = _trace(self.model, inputs)
+        return self.traces[key](*inputs)
+
+
+def compile_rollout(model: Simulator, example: EpisodeFeatures) -> CompiledRollout:
+    """A compiled rollout, traced on `example` (see CompiledRollout)."""
+    return CompiledRollout(model, example)
 
 
 @dataclass

@@ -28,7 +28,7 @@ def model_args(cfg_model: DictConfig) -> dict:
             "bc_position": str(cfg_model.get("bc_position", "reference")),
             "layer_norm": bool(cfg_model.get("layer_norm", False)), "n_blocks": int(cfg_model.get("n_blocks", 2)),
             "pin_fixed_joint": bool(cfg_model.get("pin_fixed_joint", False)),
-            "frame": str(cfg_model.get("frame", "global"))}
+            "frame": str(cfg_model.get("frame", "global")), "update": str(cfg_model.get("update", "additive"))}
 
 
 def learning_rate(cfg: DictConfig, epoch: int) -> float:
@@ -40,7 +40,8 @@ def learning_rate(cfg: DictConfig, epoch: int) -> float:
 def evaluate_split(model: Simulator, data: GraphSet, cfg: DictConfig) -> dict:
     model.eval()
     with torch.no_grad():
-        loss = float(multistep_loss(model, data, cfg.rollout_horizon, 0.0, cfg.stress_weight))
+        loss = float(multistep_loss(model, data, cfg.rollout_horizon, 0.0, cfg.stress_weight,
+                                     geometry=cfg.get("loss_geometry", "columns")))
     max_err, _ = rollout_errors(model, data)
     model.train()
     worst = max_err.max(axis=1)  # [items] max over frames
@@ -111,7 +112,8 @@ def train(cfg: DictConfig) -> dict:
         gen = torch.Generator().manual_seed(int(cfg.seed) * 100003 + epoch)
         losses = []
         for batch in train_set.batches(cfg.batch_size, gen):
-            loss = multistep_loss(model, batch, cfg.rollout_horizon, cfg.noise_std, cfg.stress_weight, gen)
+            loss = multistep_loss(model, batch, cfg.rollout_horizon, cfg.noise_std, cfg.stress_weight, gen,
+                                  geometry=cfg.get("loss_geometry", "columns"))
             opt.zero_grad()
             loss.backward()
             if cfg.optim.grad_clip:

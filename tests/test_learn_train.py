@@ -158,6 +158,19 @@ def test_every_model_config_composes_and_trains(data_dir, tmp_path, model_name):
     assert train(cfg)["core"] == model_name
 
 
+@pytest.mark.parametrize("option", ["model.update=kinematic", "loss_geometry=points"])
+def test_training_options_reduce_the_loss(data_dir, tmp_path, option):
+    summary = train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=16", "optim.lr=3e-3", "batch_size=1",
+                                          "rollout_horizon=3", option)))
+    hist = checkpoint.load(tmp_path / "last.pt")["history"]
+    assert hist[-1]["train_loss"] < 0.8 * hist[0]["train_loss"] and summary["epochs_run"] == 16
+
+
+def test_an_unknown_loss_geometry_is_refused(data_dir, tmp_path):
+    with pytest.raises(ValueError, match="loss geometry='mesh': must be columns | points"):
+        train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=1", "loss_geometry=mesh")))
+
+
 def test_sweep_appends_one_row_per_run(data_dir, tmp_path):
     cmd = [sys.executable, "-m", "learn.train", "-m", "+sweep=grid", f"data_dir={data_dir}", "epochs=1",
            "rotations=1", "threads=1", f"hydra.sweep.dir={tmp_path}", f"run_dir={tmp_path}/" + "${hydra:job.num}",

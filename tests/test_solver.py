@@ -208,9 +208,32 @@ def test_diverged_solve_is_a_structured_failure():
     with pytest.raises(SolveFailure) as err:
         # shrink of sigma/E = 400 %: no equilibrium path exists within one cut-back
         solve(strip_design(30.0), MeshPreset(5, 3, 3, "c"), mat, bottom_layer_prestress(5.0), NO_GRAVITY,
-              np.zeros(3), settings=SolverSettings(increments=1, save_every=1, max_cutbacks=1, max_it=5))
+              np.zeros(3), settings=SolverSettings(increments=1, save_every=1, max_cutbacks=1, max_it=5,
+                                                   stabilize=False))
     info = err.value.info
     assert info["reason"] and info["t"] > 0 and isinstance(info["residual_history"], list)
+
+
+def test_stabilized_crossing_that_finds_no_equilibrium_is_a_structured_failure():
+    mat = neo_hookean(1.2, 0.3)
+    with pytest.raises(SolveFailure, match="stabilized steps from t = 0 found no undamped equilibrium"):
+        solve(strip_design(30.0), MeshPreset(5, 3, 3, "c"), mat, bottom_layer_prestress(5.0), NO_GRAVITY,
+              np.zeros(3), settings=SolverSettings(increments=1, save_every=1, max_cutbacks=1, max_it=5,
+                                                   stabilize_max_steps=3))
+
+
+def test_frames_reached_through_stabilized_steps_are_the_undamped_equilibria():
+    """Newton capped at 3 iterations and no cut-backs: plain increments fail, damped steps (a spring to the last
+    accepted state) carry the solve; every saved frame must still be the undamped equilibrium, i.e. match a
+    plain solve with a generous Newton budget to its tolerance, and the crossings are recorded."""
+    mat = neo_hookean(1.2, 0.3)
+    args = (strip_design(40.0), COARSE, mat, bottom_layer_prestress(0.1), NO_GRAVITY, np.zeros(3))
+    _, ref, _ = solve(*args, settings=SolverSettings(increments=10, save_every=5))
+    _, got, solver = solve(*args, settings=SolverSettings(increments=10, save_every=5, max_cutbacks=0, max_it=3))
+    rec = solver.stats["stabilized"]
+    assert rec["crossings"] >= 1 and rec["steps"] >= 1 and rec["dissipated_mJ"] > 0
+    for a, b in zip(ref.node_xyz[1:], got.node_xyz[1:]):
+        assert np.abs(a - b).max() < 1e-3  # mm (measured 1.1e-4); the tip moves 26 mm
 
 
 def test_quadrature_points_follow_the_cell_key_axes():
