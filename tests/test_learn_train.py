@@ -1,6 +1,7 @@
 """learn.train / rollout / evaluate / validity end to end on tiny synthetic episodes (Hydra compose API)."""
 import csv
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -164,6 +165,16 @@ def test_training_options_reduce_the_loss(data_dir, tmp_path, option):
                                           "rollout_horizon=3", option)))
     hist = checkpoint.load(tmp_path / "last.pt")["history"]
     assert hist[-1]["train_loss"] < 0.8 * hist[0]["train_loss"] and summary["epochs_run"] == 16
+
+
+def test_a_second_run_into_a_busy_run_dir_is_refused_and_a_stale_lock_taken_over(data_dir, tmp_path):
+    with checkpoint.run_lock(tmp_path):  # this process holds it
+        with pytest.raises(checkpoint.RunDirInUse, match=f"in use by process {os.getpid()}"):
+            train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=1")))
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    (tmp_path / ".lock").write_text(dead.stdout.strip())  # a crashed run's lock
+    assert train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=1")))["epochs_run"] == 1
+    assert not (tmp_path / ".lock").exists()
 
 
 def test_an_unknown_loss_geometry_is_refused(data_dir, tmp_path):
