@@ -52,6 +52,20 @@ def split_names(features: list[EpisodeFeatures], fractions: dict, seed: int) -> 
     return out
 
 
+def extend_split(split: dict[str, list[str]], features: list[EpisodeFeatures]) -> dict[str, list[str]]:
+    """An earlier run's split with the episodes it does not list added to train: a grown dataset keeps its
+    held-out designs, so runs on the old and the new data are evaluated on the same ones. Episodes of the old
+    split that are gone are an error."""
+    names = {f.name for f in features}
+    missing = sorted(n for s in SPLITS for n in split.get(s, []) if n not in names)
+    if missing:
+        raise FileNotFoundError(f"split_from lists episodes that are not in the data: {missing[:5]}")
+    listed = {n for s in SPLITS for n in split.get(s, [])}
+    out = {s: list(split.get(s, [])) for s in SPLITS}
+    out["train"] += sorted(names - listed)
+    return out
+
+
 def augment(features: list[EpisodeFeatures], rotations: int, seed: int) -> list[EpisodeFeatures]:
     """Each episode rotated about z (through the fixed joint) by `rotations` angles spread over a full turn,
     with a random offset per episode; rotations <= 1 keeps the episodes as they are."""

@@ -14,7 +14,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from learn import checkpoint
 from learn.conditions import envelope
-from learn.dataset import GraphSet, augment, episode_paths, load_features, split_names
+from learn.dataset import GraphSet, augment, episode_paths, extend_split, load_features, split_names
 from learn.metrics import multistep_loss, rollout_errors
 from learn.model import Simulator
 
@@ -79,7 +79,12 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
 
     features = load_features(episode_paths(cfg.data_dir))
     by_name = {f.name: f for f in features}
-    split = resumed["split"] if resumed else split_names(features, cfg.split, cfg.seed)
+    if resumed:
+        split = resumed["split"]
+    elif cfg.get("split_from"):  # keep an earlier run's held-out designs; new episodes join train
+        split = extend_split(checkpoint.load(cfg.split_from)["split"], features)
+    else:
+        split = split_names(features, cfg.split, cfg.seed)
     missing = [n for s in split.values() for n in s if n not in by_name]
     if missing:
         raise FileNotFoundError(f"episodes of the checkpoint's split are missing from {cfg.data_dir}: {missing[:5]}")

@@ -177,6 +177,14 @@ def test_a_second_run_into_a_busy_run_dir_is_refused_and_a_stale_lock_taken_over
     assert not (tmp_path / ".lock").exists()
 
 
+def test_split_from_keeps_an_earlier_runs_held_out_episodes(trained, data_dir, tmp_path):
+    run, _ = trained
+    old = checkpoint.load(run / "last.pt")["split"]
+    train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=1", f"split_from={run / 'last.pt'}", "seed=7")))
+    new = checkpoint.load(tmp_path / "last.pt")["split"]
+    assert new["val"] == old["val"] and new["test"] == old["test"] and sorted(new["train"]) == sorted(old["train"])
+
+
 def test_an_unknown_loss_geometry_is_refused(data_dir, tmp_path):
     with pytest.raises(ValueError, match="loss geometry='mesh': must be columns | points"):
         train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=1", "loss_geometry=mesh")))
