@@ -41,8 +41,8 @@ class SolverSettings:
     line_search: str = "basic"
     linear_solver: str = "direct"
     predictor: str = "linear"
-    stabilize: bool = True
-    stabilize_max_steps: int = 200
+    stabilize: bool = False
+    stabilize_max_steps: int = 60
     stabilize_accept_mm: float = 0.1
     jit_compile_args: tuple = ("-O3", "-march=native", "-g0")  # as conf/solver/default.yaml
 

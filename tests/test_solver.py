@@ -219,7 +219,7 @@ def test_stabilized_crossing_that_finds_no_equilibrium_is_a_structured_failure()
     with pytest.raises(SolveFailure, match="stabilized steps from t = 0 found no undamped equilibrium"):
         solve(strip_design(30.0), MeshPreset(5, 3, 3, "c"), mat, bottom_layer_prestress(5.0), NO_GRAVITY,
               np.zeros(3), settings=SolverSettings(increments=1, save_every=1, max_cutbacks=1, max_it=5,
-                                                   stabilize_max_steps=3))
+                                                   stabilize=True, stabilize_max_steps=3))
 
 
 def test_frames_reached_through_stabilized_steps_are_the_undamped_equilibria():
@@ -229,7 +229,8 @@ def test_frames_reached_through_stabilized_steps_are_the_undamped_equilibria():
     mat = neo_hookean(1.2, 0.3)
     args = (strip_design(40.0), COARSE, mat, bottom_layer_prestress(0.1), NO_GRAVITY, np.zeros(3))
     _, ref, _ = solve(*args, settings=SolverSettings(increments=10, save_every=5))
-    _, got, solver = solve(*args, settings=SolverSettings(increments=10, save_every=5, max_cutbacks=0, max_it=3))
+    _, got, solver = solve(*args, settings=SolverSettings(increments=10, save_every=5, max_cutbacks=0, max_it=3,
+                                                          stabilize=True))
     rec = solver.stats["stabilized"]
     assert rec["crossings"] >= 1 and rec["steps"] >= 1 and rec["dissipated_mJ"] > 0
     for a, b in zip(ref.node_xyz[1:], got.node_xyz[1:]):
