@@ -7,7 +7,8 @@ Episode i (design seed from (seed, i)) is `out/episode_<i>.h5`. Each episode is 
 `mpirun -n np` process, `jobs` of them at a time, so a crash or divergence takes down one episode only.
 An episode file that validates is skipped on a re-run; the writer is atomic (temporary name, then rename),
 so a kill at any moment leaves nothing that looks valid. Every attempt appends one JSON line to
-`out/manifest.jsonl` (episode, seed, status ok | skipped | diverged | error, reason, timings, bytes);
+`out/manifest.jsonl` (episode, seed, status ok | skipped | diverged | contact | error, reason, timings, bytes,
+clearance_mm);
 diverged and failed episodes are never written as data. Shard s of n_shards takes episodes i = s mod n_shards.
 """
 from __future__ import annotations
@@ -29,7 +30,7 @@ from fea_factory.material import make_material
 from fea_factory.mesh import MeshPreset
 from fea_factory.residual_stress import check_residual_stress
 from fea_factory.scene import Scene
-from fea_factory.solve import EXIT_DIVERGED
+from fea_factory.solve import EXIT_CONTACT, EXIT_DIVERGED
 from fea_factory.solver import SolverSettings
 from fea_factory.tradeoff import apply_tolerance
 
@@ -131,7 +132,11 @@ def run_episode(i: int, design: Design, out: Path, cfg: DictConfig, overrides: l
     if proc.returncode == 0 and result.get("status") == "ok":
         return {**record, "status": "ok", "file": str(path), "bytes": path.stat().st_size,
                 "increments": result.get("increments"), "newton": result.get("newton"),
-                "cutbacks": result.get("cutbacks"), "solve_wall_s": result.get("wall_total_s")}
+                "cutbacks": result.get("cutbacks"), "solve_wall_s": result.get("wall_total_s"),
+                "clearance_mm": result.get("clearance_mm")}
+    if proc.returncode == EXIT_CONTACT:
+        return {**record, "status": "contact", "reason": result.get("reason"),
+                "clearance_mm": result.get("clearance_mm")}
     if proc.returncode == EXIT_DIVERGED:
         return {**record, "status": "diverged", "reason": result.get("reason"), "t": result.get("t")}
     tail = (proc.stderr or proc.stdout)[-1500:]
@@ -170,7 +175,7 @@ def generate(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict:
         todo.append(i)
     overrides = solve_overrides(task_overrides or [])
     designs = {i: sample_designs(cfg.grid, cfg.blocks, n=1, seed=int(cfg.seed), start=i)[0] for i in todo}
-    counts = {"ok": 0, "diverged": 0, "error": 0}
+    counts = {"ok": 0, "diverged": 0, "contact": 0, "error": 0}
     n_bytes = 0
     t0 = time.perf_counter()
     with ThreadPoolExecutor(max_workers=int(cfg.jobs)) as pool, \
@@ -181,10 +186,11 @@ def generate(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict:
             manifest.append(rec)
             counts[rec["status"]] += 1
             n_bytes += rec.get("bytes", 0)
-            bar.set_postfix(ok=counts["ok"], failed=counts["diverged"] + counts["error"])
+            bar.set_postfix(ok=counts["ok"], failed=counts["diverged"] + counts["contact"] + counts["error"])
             bar.update()
     wall = time.perf_counter() - t0
-    summary = {"done": counts["ok"], "skipped": skipped, "diverged": counts["diverged"], "error": counts["error"],
+    summary = {"done": counts["ok"], "skipped": skipped, "diverged": counts["diverged"], "contact": counts["contact"],
+               "error": counts["error"],
                "bytes": n_bytes, "bytes_per_episode": n_bytes // max(counts["ok"], 1), "wall_s": round(wall, 2),
                "episodes_per_hour": round(3600 * counts["ok"] / wall, 1) if counts["ok"] else 0.0,
                "jobs": int(cfg.jobs), "np": int(cfg.np), "out": str(out)}

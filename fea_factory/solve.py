@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fea_factory.clearance import clearance
 from fea_factory.design import Design, DesignLimits, validate
 from fea_factory.material import make_material
 from fea_factory.mesh import MeshPreset, build_keyed_mesh
@@ -28,6 +29,7 @@ from fea_factory.solver import GridSolver, SolveFailure, SolverSettings, prestre
 from fea_factory.tradeoff import TradeoffError, apply_tolerance
 
 EXIT_DIVERGED = 3
+EXIT_CONTACT = 4  # blocks sharing no joint came closer than solver.min_clearance_mm: refused, not data
 KIND_CODES = {"up": 0, "down": 1, "passive": 2}
 
 
@@ -127,12 +129,24 @@ def main() -> None:
                 print(json.dumps({"status": "diverged", "design": str(cfg.design), **fail.info}))
             sys.exit(EXIT_DIVERGED)
         if comm.rank == 0:
+            c = clearance(np.stack(frames.node_xyz), keyed.joint_nodes, keyed.beam_nodes, design.beams)
+            stats.update(c.as_dict())
+            limit = float(cfg.solver.get("min_clearance_mm", 0.0))
+            if c.mm < limit:
+                print(json.dumps({"status": "contact", "design": str(cfg.design), **c.as_dict(),
+                                  "reason": f"{c.blocks[0]} and {c.blocks[1]} come within {c.mm:.3g} mm at frame "
+                                            f"{c.frame} (solver.min_clearance_mm = {limit}): the grid folds onto "
+                                            "itself and the model has no contact"}))
+        if comm.rank == 0 and c.mm < limit:
+            sys.exit(EXIT_CONTACT)
+        if comm.rank == 0:
             ep = episode_from_solution(design, keyed, frames, stats, scene,
                                        OmegaConf.to_yaml(cfg, resolve=True), int(cfg.get("seed", 0)), comm.size)
             path = write_episode(cfg.out, ep)
             print(json.dumps({"status": "ok", "out": str(path), "frames": len(frames.t),
                               "increments": stats["increments"], "newton": stats["newton_total"],
-                              "cutbacks": stats["cutbacks"], "wall_total_s": round(stats["wall_total_s"], 3)}))
+                              "cutbacks": stats["cutbacks"], "wall_total_s": round(stats["wall_total_s"], 3),
+                              "clearance_mm": stats["clearance_mm"]}))
 
     _main()
 

@@ -95,3 +95,16 @@ def test_kill_mid_episode_then_resume_completes_the_set(tmp_path):
     assert a.design_json == b.design_json
     np.testing.assert_allclose(a.node_xyz, b.node_xyz, atol=1e-6)
     np.testing.assert_allclose(a.stress, b.stress, atol=1e-7)
+
+
+def test_a_grid_that_comes_closer_than_min_clearance_is_refused_not_written(tmp_path):
+    out = tmp_path / "ds"
+    generate(out, "n=1", "grid=g2x2", "solver.min_clearance_mm=10000")  # every design is "too close"
+    rec = manifest(out)[-1]
+    assert rec["status"] == "contact" and "solver.min_clearance_mm = 10000" in rec["reason"]
+    assert rec["clearance_mm"] > 0 and not list(out.glob("episode_*.h5"))
+    generate(out, "n=1", "grid=g2x2")  # the default limit: written, its clearance recorded
+    rec = manifest(out)[-1]
+    assert rec["status"] == "ok" and rec["clearance_mm"] > 0.5
+    from data_schema.episode import read_episode
+    assert json.loads(read_episode(out / "episode_00000.h5").solver_stats_json)["clearance_mm"] == rec["clearance_mm"]
