@@ -433,7 +433,7 @@ class GridSolver:
                 why = SNES_REASONS.get(reason, f"SNES reason {reason}") if finite else "non-finite displacement"
                 cut += 1
                 self.stats["cutbacks"] += 1
-                if (cut > s.max_cutbacks or not s.adaptive) and s.stabilize and s.adaptive:
+                if cut > s.max_cutbacks and s.stabilize and s.adaptive:
                     # no equilibrium within reach of the last one: an instability (snap-through); cross it
                     # with damped steps and go on from the undamped equilibrium on the other side
                     x_backup.copy(self.u.vector)

@@ -53,7 +53,7 @@ def _trace(model: Simulator, inputs: tuple[torch.Tensor, ...]) -> torch.jit.Scri
 class CompiledRollout:
     """TorchScript rollouts (traced, frozen), called like _Unroll with graph_inputs(f): the same numbers as the
     eager rollout, a fraction of the Python overhead per step, as many steps as the traced example has frames - 1.
-    An additive model needs one trace for every graph; a kinematic model's placement order (learn/kinematics.py)
+    An additive model has one trace that serves every graph; a kinematic model's placement order (learn/kinematics.py)
     is baked into its trace, so it keeps one per graph (incidence and fixed joint), traced on first use."""
 
     def __init__(self, model: Simulator, example: EpisodeFeatures):
