@@ -69,15 +69,6 @@ class Static:
         return self.tree
 
 
-def _point_mask(block: Block) -> torch.Tensor:
-    """[n_fields, 1] 1.0 for point fields of the geometry term (every geometry field is 3 wide)."""
-    assert all(f.width == 3 for f in block.geometry.fields)
-    return torch.tensor([[1.0 if f.kind == "point" else 0.0] for f in block.geometry.fields])
-
-
-POINT_MASK = {JOINT.name: _point_mask(JOINT), BEAM.name: _point_mask(BEAM)}
-
-
 def with_current_position(bc: torch.Tensor, state: torch.Tensor, block: Block) -> torch.Tensor:
     """bc [n, D] with its "position" field replaced by the block's current origin point of state [..., n, S]."""
     pos = block.bc.slice("position")
@@ -90,7 +81,7 @@ def with_current_position(bc: torch.Tensor, state: torch.Tensor, block: Block) -
 def local_geometry(geometry: torch.Tensor, block: Block) -> torch.Tensor:
     """[..., n, G] geometry with every point relative to the block's own origin point."""
     origin = geometry[..., block.origin_slice]
-    fields = geometry.unflatten(-1, (-1, 3)) - POINT_MASK[block.name].to(geometry) * origin[..., None, :]
+    fields = geometry.unflatten(-1, (-1, 3)) - kinematics.POINTS[block.name].to(geometry) * origin[..., None, :]
     return fields.flatten(-2)
 
 
