@@ -77,12 +77,14 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
         log.info("run in %s has already finished (epoch %d); nothing to do", run_dir, resumed["epoch"])
         return resumed["summary"]
 
+    init = None if resumed or not cfg.get("init_from") else checkpoint.load(cfg.init_from)
     features = load_features(episode_paths(cfg.data_dir))
     by_name = {f.name: f for f in features}
     if resumed:
         split = resumed["split"]
-    elif cfg.get("split_from"):  # keep an earlier run's held-out designs; new episodes join train
-        split = extend_split(checkpoint.load(cfg.split_from)["split"], features)
+    elif cfg.get("split_from") or init:  # keep an earlier run's held-out designs; new episodes join train
+        split = extend_split(checkpoint.load(cfg.split_from)["split"] if cfg.get("split_from") else init["split"],
+                             features)
     else:
         split = split_names(features, cfg.split, cfg.seed)
     missing = [n for s in split.values() for n in s if n not in by_name]
@@ -94,8 +96,11 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
     val_set = GraphSet.build([by_name[n] for n in split["val"] or split["train"]])
 
     torch.manual_seed(cfg.seed)
-    if resumed:
-        model = checkpoint.model_from(resumed).train()
+    if resumed or init:  # init_from: its weights, PCA, normalisers and model args; a fresh optimiser and history
+        model = checkpoint.model_from(resumed or init).train()
+        if init:
+            log.info("initialised from %s (epoch %d); model args from it, conf model ignored", cfg.init_from,
+                     init["epoch"])
     else:
         model = Simulator.fit(model_args(cfg.model), train_set.joint_state, train_set.beam_state, train_set.static,
                               cfg.pca_retention, cfg.delta_std_floor)

@@ -185,6 +185,22 @@ def test_split_from_keeps_an_earlier_runs_held_out_episodes(trained, data_dir, t
     assert new["val"] == old["val"] and new["test"] == old["test"] and sorted(new["train"]) == sorted(old["train"])
 
 
+def test_init_from_fine_tunes_the_weights_with_the_checkpoints_split_and_statistics(trained, data_dir, tmp_path):
+    run, _ = trained
+    start = checkpoint.load(run / "best.pt")
+    # another seed and a conf model of another size: the checkpoint's model, statistics and split win
+    train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=0", f"init_from={run / 'best.pt'}", "seed=7",
+                                "model.latent=8", "rollout_horizon=10")))
+    tuned = checkpoint.load(tmp_path / "last.pt")
+    assert tuned["split"] == start["split"] and tuned["model_args"] == start["model_args"]
+    for key, value in start["state_dict"].items():  # no epoch run: the weights are the checkpoint's
+        assert torch.equal(tuned["state_dict"][key], value), key
+    train(cfg_for("train", tiny(data_dir, tmp_path / "more", "epochs=2", f"init_from={run / 'best.pt'}",
+                                "rollout_horizon=10")))
+    hist = checkpoint.load(tmp_path / "more" / "last.pt")["history"]
+    assert [h["epoch"] for h in hist] == [0, 1]  # a fresh history and optimiser
+
+
 def test_an_unknown_loss_geometry_is_refused(data_dir, tmp_path):
     with pytest.raises(ValueError, match="loss geometry='mesh': must be columns | points"):
         train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=1", "loss_geometry=mesh")))
