@@ -18,7 +18,7 @@ from learn import checkpoint
 from learn.dataset import GraphSet, episode_paths, load_features
 from learn.features import EpisodeFeatures, rebuild_all_points
 from learn.model import Simulator, static_from
-from learn.rollout import compile_rollout, graph_inputs, reference, rollout, unroll
+from learn.rollout import compile_rollout, graph_inputs, input_floor, reference, rollout, unroll
 from learn.validity import check
 
 log = logging.getLogger(__name__)
@@ -103,6 +103,7 @@ def evaluate(cfg: DictConfig) -> dict:
         r = rollout(model, f, steps=f.n_frames - 1, t=f.t)
         err = np.linalg.norm(r.local_points - f.fea_points, axis=-1)  # [F, P]
         floor = np.linalg.norm(reference(f).local_points - f.fea_points, axis=-1)
+        seen = input_floor(model, f)
         verdict = check(model, r, **OmegaConf.to_container(cfg.validity), envelope=ckpt.get("envelope"))
         designs.append({
             "name": f.name, "family": f.family, "design_size_mm": f.design_size,
@@ -111,6 +112,7 @@ def evaluate(cfg: DictConfig) -> dict:
             "max_rel_error_per_frame": (err.max(axis=1) / f.design_size).tolist(),
             "mean_rel_error_per_frame": (err.mean(axis=1) / f.design_size).tolist(),
             "representation_floor": float(floor.max() / f.design_size),
+            "input_floor": float(seen.max() / f.design_size),
             "fea_s": f.fea_seconds, "valid": verdict.valid, "validity": verdict.as_dict()})
         rollouts.append(r)
 
@@ -124,6 +126,7 @@ def evaluate(cfg: DictConfig) -> dict:
         "max_rel_error": with_families([d["max_rel_error"] for d in designs], fams),
         "mean_rel_error": with_families([d["mean_rel_error"] for d in designs], fams),
         "representation_floor": distribution([d["representation_floor"] for d in designs]),
+        "input_floor": distribution([d["input_floor"] for d in designs]),
         "rollout_ms_per_design": 1e3 * rollout_s,
         "rollout_ms_per_design_eager": 1e3 * times["eager"],
         "rollout_ms_per_design_batched": 1e3 * batched_s,
@@ -177,8 +180,9 @@ def markdown(report: dict, with_designs: bool = True) -> str:
           for fam, d in m["per_family"].items()),
         f"| mean error / design size | {_pct(report['mean_rel_error']['median'])} | "
         f"{_pct(report['mean_rel_error']['p95'])} | {_pct(report['mean_rel_error']['worst'])} | |",
-        f"| representation floor | {_pct(report['representation_floor']['median'])} | "
-        f"{_pct(report['representation_floor']['p95'])} | {_pct(report['representation_floor']['worst'])} | |",
+        *(f"| {label} | {_pct(report[key]['median'])} | {_pct(report[key]['p95'])} | {_pct(report[key]['worst'])} | |"
+          for key, label in (("representation_floor", "representation floor"), ("input_floor", "input floor (PCA)"))
+          if key in report),
         "",
         f"rollout {report['rollout_ms_per_design']:.2f} ms/design ({report['threads']} thread; eager "
         f"{report['rollout_ms_per_design_eager']:.2f} ms), batched "

@@ -153,6 +153,24 @@ class Simulator(nn.Module):
         return {"joint_geometry": jg, "joint_stress": js, "joint_bc": jbc,
                 "beam_geometry": bg, "beam_stress": bs, "beam_bc": bbc}
 
+    def input_geometry(self, joint_state, beam_state, static: Static) -> tuple[torch.Tensor, torch.Tensor]:
+        """The states with every block's geometry replaced by what the network sees of it: its local geometry
+        through the term's PCA and back (the stress columns are kept). With a PCA that keeps every component this
+        is the state itself; the gap is the resolution of the inputs (evaluate reports it as the input floor)."""
+        R = self.frames(joint_state, beam_state)
+        raw = self.raw_terms(joint_state, beam_state, static, R)
+        out = []
+        for state, block, R_block in ((joint_state, JOINT, R[0]), (beam_state, BEAM, R[1])):
+            pca = self.pca[f"{block.name}_geometry"]
+            local = pca.inverse(pca(raw[f"{block.name}_geometry"]))
+            if R_block is not None:
+                local = frames.rotate_vectors(local, R_block, to_local=False)
+            origin = state[..., block.origin_slice]
+            fields = local.unflatten(-1, (-1, 3)) + kinematics.POINTS[block.name].to(local) * origin[..., None, :]
+            g = block.geometry_slice
+            out.append(torch.cat([state[..., :g.start], fields.flatten(-2), state[..., g.stop:]], -1))
+        return out[0], out[1]
+
     def edge_features(self, joint_state, beam_state, g: GraphIndex, R=(None, None)) -> torch.Tensor:
         """[..., E, De] sender and receiver centres relative to the beam's middle centre (the pair's origin);
         in local mode expressed in the beam's frame, with the joints' frames relative to the beam's."""

@@ -133,3 +133,16 @@ def reference(source) -> Rollout:
     pts = rebuild_all_points(f.joint_state.astype(np.float64), f.beam_state.astype(np.float64))
     return Rollout(t=f.t, joint_states=f.joint_state, beam_states=f.beam_state, points=pts + f.origin,
                    point_nodes=f.point_nodes, origin=f.origin, features=f)
+
+
+def input_floor(model: Simulator, source) -> np.ndarray:
+    """[F, P] distance between the points rebuilt from the FEA's features and from the same features as the
+    network sees them (each block's geometry through its PCA and back, Simulator.input_geometry): how finely
+    the inputs resolve the shape, a floor for what any network on them can predict."""
+    f = as_features(source)
+    static = static_from(f.joint_bc, f.beam_bc, f.incidence)
+    with torch.inference_mode():
+        js, bs = torch.as_tensor(f.joint_state), torch.as_tensor(f.beam_state)
+        seen = rebuild_all_points(*model.input_geometry(js, bs, static))
+        return (seen - rebuild_all_points(js, bs)).norm(dim=-1).numpy()
+

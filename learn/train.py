@@ -17,6 +17,7 @@ from learn.conditions import envelope
 from learn.dataset import GraphSet, augment, episode_paths, extend_split, load_features, split_names
 from learn.metrics import multistep_loss, rollout_errors
 from learn.model import Simulator
+from learn.rollout import input_floor
 
 log = logging.getLogger(__name__)
 LAST, BEST = "last.pt", "best.pt"
@@ -105,6 +106,9 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
         model = Simulator.fit(model_args(cfg.model), train_set.joint_state, train_set.beam_state, train_set.static,
                               cfg.pca_retention, cfg.delta_std_floor)
     log.info("PCA dims %s; %d parameters", {t: p.k for t, p in model.pca.items()}, model.n_parameters)
+    floor = max(float(input_floor(model, f).max() / f.design_size) for f in val_set.items)
+    log.info("input floor: the PCA'd geometry inputs rebuild the validation designs' points within %.3g %% of the "
+             "design size (pca_retention %s)", 100 * floor, cfg.pca_retention)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.optim.lr, weight_decay=cfg.optim.weight_decay)
     history, best, bad, start = [], math.inf, 0, 0
     if resumed:
@@ -161,6 +165,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
                "best_val_loss": best_row.get("val_loss", math.nan),
                "best_val_rollout": best_row.get("val_rollout", math.nan),
                "train_seconds": history[-1]["seconds"] if history else 0.0, "n_parameters": model.n_parameters,
+               "input_floor": floor,
                "core": model.args["core"], "latent": model.args["latent"],
                "widths": "x".join(map(str, model.args["widths"])),
                "pca_dims": " ".join(f"{t}={p.k}" for t, p in model.pca.items())}

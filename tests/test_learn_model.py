@@ -137,3 +137,21 @@ def test_local_frame_simulator_is_equivariant_to_rotations_about_z(features):
         jr, br = model.step(data_r.joint_state[:3], data_r.beam_state[:3], data_r.static, data_r.t[:3])
     want = replace(f, joint_state=j.numpy(), beam_state=b.numpy()).rotated(R)
     assert np.allclose(jr.numpy(), want.joint_state, atol=2e-3) and np.allclose(br.numpy(), want.beam_state, atol=2e-3)
+
+
+def test_input_floor_is_zero_with_every_component_and_grows_as_the_pca_drops_some(features):
+    """input_geometry: each block's geometry as the network sees it (through its PCA and back). Keeping every
+    component reproduces the points to round-off; dropping components loses shape, which evaluate reports."""
+    from learn.model import static_from
+    from learn.rollout import input_floor
+    train = GraphSet.build(augment(features[:4], rotations=4, seed=0))
+    args = {"core": "double_gn", "latent": 8, "widths": [16], "time_input": True, "pin_fixed_joint": True}
+    floors = []
+    for retention in (1.0, 0.9):
+        model = Simulator.fit(args, train.joint_state, train.beam_state, train.static, retention)
+        f = features[5]
+        js, bs = torch.as_tensor(f.joint_state), torch.as_tensor(f.beam_state)
+        seen_j, seen_b = model.input_geometry(js, bs, static_from(f.joint_bc, f.beam_bc, f.incidence))
+        assert torch.equal(seen_j[..., JOINT.stress_slice], js[..., JOINT.stress_slice])  # stress untouched
+        floors.append(input_floor(model, f).max() / f.design_size)
+    assert floors[0] < 1e-5 < 1e-3 < floors[1]

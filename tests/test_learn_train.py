@@ -131,7 +131,7 @@ def test_evaluate_writes_the_report(trained, tmp_path):
     report = evaluate(cfg_for("evaluate", [f"checkpoint={run / 'best.pt'}", f"out_dir={tmp_path}",
                                            "timing_repeats=1"]))
     on_disk = json.loads((tmp_path / "report.json").read_text())
-    for key in ("n_designs", "max_rel_error", "rollout_ms_per_design", "fea_s_per_episode", "speedup"):
+    for key in ("n_designs", "max_rel_error", "rollout_ms_per_design", "fea_s_per_episode", "speedup", "input_floor"):
         assert key in on_disk
     for key in ("median", "p95", "worst", "per_family"):
         assert key in on_disk["max_rel_error"]
