@@ -1,6 +1,7 @@
 """The learned simulator: per-term PCA encoding, a single or double GN core, and G(t+1) = G(t) + dG."""
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -83,6 +84,23 @@ def local_geometry(geometry: torch.Tensor, block: Block) -> torch.Tensor:
     origin = geometry[..., block.origin_slice]
     fields = geometry.unflatten(-1, (-1, 3)) - kinematics.POINTS[block.name].to(geometry) * origin[..., None, :]
     return fields.flatten(-2)
+
+
+TERM_KINDS = ("geometry", "stress", "bc")
+
+
+def term_retention(retention: float | dict) -> dict[str, float]:
+    """pca_retention as {term kind: variance fraction kept}: one number for every term, or a mapping with a value
+    per kind (geometry, stress, bc); each in (0, 1]."""
+    given = dict(retention) if isinstance(retention, Mapping) else {k: retention for k in TERM_KINDS}
+    unknown = sorted(set(given) - set(TERM_KINDS))
+    missing = sorted(set(TERM_KINDS) - set(given))
+    if unknown or missing:
+        raise ValueError(f"pca_retention: keys must be {list(TERM_KINDS)} (unknown {unknown}, missing {missing})")
+    for kind, value in given.items():
+        if not isinstance(value, (int, float)) or not 0.0 < float(value) <= 1.0:
+            raise ValueError(f"pca_retention.{kind}={value!r}: must be a number in (0, 1]")
+    return {k: float(v) for k, v in given.items()}
 
 
 class Simulator(nn.Module):
@@ -257,12 +275,13 @@ class Simulator(nn.Module):
 
     @classmethod
     def fit(cls, args: dict, joint_state: torch.Tensor, beam_state: torch.Tensor, static: Static,
-            retention: float = 0.98, delta_floor: float = 0.01) -> "Simulator":
+            retention: float | dict = 1.0, delta_floor: float = 0.01) -> "Simulator":
         """A simulator whose PCA and normalisers are fitted on training states [F, J, Dj], [F, B, Db]."""
         probe = cls({**args, "pca": {t: [1, 1] for t in TERMS}})
         R = probe.frames(joint_state, beam_state)
         raw = probe.raw_terms(joint_state, beam_state, static, R)
-        pcas = {t: TermPCA.fit(x.reshape(-1, x.shape[-1]).numpy(), retention) for t, x in raw.items()}
+        keep = term_retention(retention)
+        pcas = {t: TermPCA.fit(x.reshape(-1, x.shape[-1]).numpy(), keep[t.split("_", 1)[1]]) for t, x in raw.items()}
         model = cls({**args, "pca": {t: [p.dim, p.k] for t, p in pcas.items()}})
         for t, p in pcas.items():
             model.pca[t].load_state_dict(p.state_dict())

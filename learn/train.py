@@ -16,7 +16,7 @@ from learn import checkpoint
 from learn.conditions import envelope
 from learn.dataset import GraphSet, augment, episode_paths, extend_split, load_features, split_names
 from learn.metrics import multistep_loss, rollout_errors
-from learn.model import Simulator
+from learn.model import Simulator, term_retention
 from learn.rollout import input_floor
 
 log = logging.getLogger(__name__)
@@ -30,6 +30,12 @@ def model_args(cfg_model: DictConfig) -> dict:
             "layer_norm": bool(cfg_model.get("layer_norm", False)), "n_blocks": int(cfg_model.get("n_blocks", 2)),
             "pin_fixed_joint": bool(cfg_model.get("pin_fixed_joint", False)),
             "frame": str(cfg_model.get("frame", "global")), "update": str(cfg_model.get("update", "additive"))}
+
+
+def retention_of(cfg: DictConfig):
+    """pca_retention as a float or a plain {kind: float} (learn.model.term_retention checks it)."""
+    value = cfg.pca_retention
+    return OmegaConf.to_container(value) if OmegaConf.is_config(value) else value
 
 
 def learning_rate(cfg: DictConfig, epoch: int) -> float:
@@ -72,6 +78,7 @@ def train(cfg: DictConfig) -> dict:
 
 
 def _train(cfg: DictConfig, run_dir: Path) -> dict:
+    term_retention(retention_of(cfg))  # a bad value stops here, before any data is read
     last = run_dir / LAST
     resumed = checkpoint.load(last) if cfg.resume and last.exists() else None
     if resumed is not None and resumed.get("finished"):
@@ -104,11 +111,11 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
                      init["epoch"])
     else:
         model = Simulator.fit(model_args(cfg.model), train_set.joint_state, train_set.beam_state, train_set.static,
-                              cfg.pca_retention, cfg.delta_std_floor)
+                              retention_of(cfg), cfg.delta_std_floor)
     log.info("PCA dims %s; %d parameters", {t: p.k for t, p in model.pca.items()}, model.n_parameters)
     floor = max(float(input_floor(model, f).max() / f.design_size) for f in val_set.items)
     log.info("input floor: the PCA'd geometry inputs rebuild the validation designs' points within %.3g %% of the "
-             "design size (pca_retention %s)", 100 * floor, cfg.pca_retention)
+             "design size (pca_retention %s)", 100 * floor, retention_of(cfg))
     opt = torch.optim.Adam(model.parameters(), lr=cfg.optim.lr, weight_decay=cfg.optim.weight_decay)
     history, best, bad, start = [], math.inf, 0, 0
     if resumed:

@@ -222,3 +222,21 @@ def test_learn_imports_without_dolfinx_or_gmsh():
             "assert 'fea_factory' not in sys.modules, 'learn must not import fea_factory'")
     out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
+
+
+@pytest.mark.parametrize("value, message", [
+    ("1.5", r"pca_retention.geometry=1.5: must be a number in \(0, 1\]"),
+    ("{geometry: 1.0, stress: 0.98}", r"keys must be .*missing \['bc'\]"),
+    ("{geometry: 1.0, stress: 0.98, bc: 1.0, mesh: 1.0}", r"unknown \['mesh'\]")])
+def test_a_bad_pca_retention_is_refused_naming_the_field(data_dir, tmp_path, value, message):
+    with pytest.raises(ValueError, match=message):
+        train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=1", f"pca_retention={value}")))
+    assert not (tmp_path / "last.pt").exists()
+
+
+def test_pca_retention_per_term_kind(data_dir, tmp_path):
+    train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=1",
+                                "pca_retention={geometry: 1.0, stress: 0.9, bc: 1.0}")))
+    state = checkpoint.load(tmp_path / "last.pt")["state_dict"]
+    assert float(state["pca.beam_geometry.explained"]) > 1 - 1e-9  # every component with variance kept
+    assert 0.9 <= float(state["pca.beam_stress.explained"]) < 1.0
