@@ -12,7 +12,7 @@ export OMPI_ALLOW_RUN_AS_ROOT=1
 export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset validate bench-fea stability tradeoff train evaluate sweep learned-extremes clean
+.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset validate bench-fea stability tradeoff train evaluate diagnose sweep learned-extremes clean
 
 help:  ## list the targets
 	@grep -E '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-12s %s\n", $$1, $$2}'
@@ -44,6 +44,9 @@ train:  ## train the Double GN on the episodes in OUT (resumes runs/train/last.p
 
 evaluate:  ## roll out the trained model on the held-out split; report in runs/evaluate/
 	$(PY) -m learn.evaluate data_dir=$(OUT)
+
+diagnose:  ## where a checkpoint's error comes from: one-step vs rollout, train vs test (CKPT=runs/train/best.pt; runs/diagnose/)
+	$(PY) -m learn.diagnose checkpoint=$(or $(CKPT),runs/train/best.pt)
 
 sweep:  ## Hydra multirun grid search over latent sizes and MLP widths (runs/sweep/results.csv)
 	$(PY) -m learn.train -m +sweep=grid data_dir=$(OUT)

@@ -240,3 +240,20 @@ def test_pca_retention_per_term_kind(data_dir, tmp_path):
     state = checkpoint.load(tmp_path / "last.pt")["state_dict"]
     assert float(state["pca.beam_geometry.explained"]) > 1 - 1e-9  # every component with variance kept
     assert 0.9 <= float(state["pca.beam_stress.explained"]) < 1.0
+
+
+def test_diagnose_separates_one_step_from_rollout_error_per_split(trained, tmp_path):
+    from learn.diagnose import diagnose
+    run, _ = trained
+    report = diagnose(cfg_for("diagnose", [f"checkpoint={run / 'best.pt'}", f"out_dir={tmp_path}",
+                                           "splits=[train,test]"]))
+    on_disk = json.loads((tmp_path / "diagnose.json").read_text())
+    assert set(on_disk["splits"]) == {"train", "test"} == set(report["splits"])
+    for m in on_disk["splits"].values():
+        assert len(m["rollout"]) == len(m["one_step"]) == len(m["motion"]) == len(m["final_from_start"]) == 10
+        assert m["rollout"][0] == pytest.approx(m["one_step"][0])  # the first step is the same step
+        assert m["final_from_start"][0] == pytest.approx(m["rollout"][-1])  # starting at frame 0 is the rollout
+        assert m["motion"][0] > 0 and m["input_floor"] >= 0
+    assert (tmp_path / "diagnose.md").exists() and (tmp_path / "diagnose.png").stat().st_size > 0
+    with pytest.raises(ValueError, match=r"\['holdout'\] not in"):
+        diagnose(cfg_for("diagnose", [f"checkpoint={run / 'best.pt'}", f"out_dir={tmp_path}", "splits=[holdout]"]))

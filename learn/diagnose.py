@@ -1,0 +1,139 @@
+"""Where a learned simulator's error comes from: `.venv/bin/python -m learn.diagnose checkpoint=... [splits=...]`.
+
+For every design of each split (conf/diagnose.yaml), per frame k = 1..F-1 and as max point error / design size:
+- rollout: the model's own 10-step rollout from frame 0 (what learn.evaluate reports);
+- one_step: one step from the FEA's frame k-1 (teacher forcing): how well the step itself is learned;
+- motion: how far the FEA's points move in that step (the scale a one-step error compares with);
+and per start frame s, the final-frame error of a rollout started from the FEA's frame s instead of frame 0
+(a model trained on whole-episode rollouts only ever saw its own intermediate states); plus the input floor
+(learn.rollout.input_floor). The medians go to diagnose.json / diagnose.md and one plot, split beside split, so
+train vs held-out separates fitting from generalisation.
+"""
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import hydra
+import matplotlib
+import numpy as np
+import torch
+from omegaconf import DictConfig
+
+from learn import checkpoint
+from learn.dataset import GraphSet, load_features
+from learn.features import rebuild_all_points
+from learn.metrics import fea_points, point_owner
+from learn.model import Simulator
+from learn.rollout import input_floor, unroll
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+log = logging.getLogger(__name__)
+
+
+def max_per_design(err: np.ndarray, owner: np.ndarray, n: int) -> np.ndarray:
+    """[..., P] point errors -> [..., n] the largest per design."""
+    out = np.zeros((*err.shape[:-1], n))
+    for idx in np.ndindex(err.shape[:-1]):
+        np.maximum.at(out[idx], owner, err[idx])
+    return out
+
+
+def diagnose_set(model: Simulator, data: GraphSet) -> dict:
+    """Per design [n, ...] arrays of max error / design size (see the module doc)."""
+    size = np.array([f.design_size for f in data.items])
+    owner, n, F = point_owner(data), len(data), len(data.t)
+    truth = fea_points(data)  # [F, P, 3]
+    with torch.inference_mode():
+        js, bs = unroll(model, data.joint_state[0], data.beam_state[0], data.static, data.t)
+        rollout = rebuild_all_points(js, bs).numpy()
+        j1, b1 = model.step(data.joint_state[:-1], data.beam_state[:-1], data.static, data.t[:-1])
+        one_step = rebuild_all_points(j1, b1).numpy()  # [F-1, P, 3]: frame k from the FEA's frame k-1
+        from_start = []
+        for s in range(F - 1):
+            js, bs = unroll(model, data.joint_state[s], data.beam_state[s], data.static, data.t[s:])
+            from_start.append(rebuild_all_points(js[-1], bs[-1]).numpy())
+    dist = lambda a, b: np.linalg.norm(a - b, axis=-1)  # noqa: E731
+    rel = lambda e: (max_per_design(e, owner, n) / size).T  # noqa: E731  [n, ...]
+    return {"rollout": rel(dist(rollout[1:], truth[1:])), "one_step": rel(dist(one_step, truth[1:])),
+            "motion": rel(dist(truth[1:], truth[:-1])),
+            "final_from_start": rel(dist(np.stack(from_start), truth[-1][None])),
+            "input_floor": np.array([input_floor(model, f).max() / f.design_size for f in data.items])}
+
+
+def medians(d: dict) -> dict:
+    return {k: np.median(v, axis=0).tolist() for k, v in d.items()}
+
+
+def markdown(report: dict) -> str:
+    pct = lambda xs: " | ".join(f"{100 * x:.2f}" for x in xs)  # noqa: E731
+    lines = [f"# Error sources of {report['checkpoint']}", "",
+             "Median over each split's designs of max point error / design size (%), per frame k.", ""]
+    for split, m in report["splits"].items():
+        F = len(m["rollout"])
+        lines += [f"## {split} ({m['n_designs']} designs)", "",
+                  "| | " + " | ".join(f"k={k}" for k in range(1, F + 1)) + " |", "|---" * (F + 1) + "|",
+                  f"| rollout from frame 0 | {pct(m['rollout'])} |",
+                  f"| one step from FEA frame k-1 | {pct(m['one_step'])} |",
+                  f"| FEA motion in step k | {pct(m['motion'])} |",
+                  f"| final error, rollout from FEA frame k-1 | {pct(m['final_from_start'])} |", "",
+                  f"input floor (PCA'd geometry): median {100 * m['input_floor']:.3f} %", ""]
+    return "\n".join(lines)
+
+
+def plot(report: dict, path: Path) -> None:
+    splits = report["splits"]
+    fig, axes = plt.subplots(1, len(splits), figsize=(5.5 * len(splits), 4), squeeze=False, sharey=True)
+    for ax, (split, m) in zip(axes[0], splits.items()):
+        k = np.arange(1, len(m["rollout"]) + 1)
+        for key, style, label in (("rollout", "o-", "rollout from frame 0"),
+                                  ("one_step", "s--", "one step from FEA frame k-1"),
+                                  ("motion", "^:", "FEA motion in step k"),
+                                  ("final_from_start", "d-.", "final error, start at FEA frame k-1")):
+            ax.plot(k, 100 * np.asarray(m[key]), style, label=label)
+        ax.set_title(f"{split}: {m['n_designs']} designs (medians)")
+        ax.set_xlabel("frame k")
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("max error / design size (%)")
+    axes[0][0].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def diagnose(cfg: DictConfig) -> dict:
+    torch.set_num_threads(int(cfg.threads))
+    ckpt = checkpoint.load(cfg.checkpoint)
+    model = checkpoint.model_from(ckpt)
+    data_dir = Path(cfg.data_dir or ckpt["config"]["data_dir"])
+    unknown = [s for s in cfg.splits if s not in ckpt["split"]]
+    if unknown:
+        raise ValueError(f"splits={list(cfg.splits)}: {unknown} not in {cfg.checkpoint}; allowed {sorted(ckpt['split'])}")
+    report = {"checkpoint": str(cfg.checkpoint), "data_dir": str(data_dir), "splits": {}}
+    for split in cfg.splits:
+        names = sorted(ckpt["split"][split])[: int(cfg.max_designs)] if cfg.max_designs else ckpt["split"][split]
+        if not names:
+            continue
+        data = GraphSet.build(load_features([data_dir / n for n in names]))
+        report["splits"][split] = {"n_designs": len(names), **medians(diagnose_set(model, data))}
+        report["splits"][split]["input_floor"] = float(np.median(report["splits"][split]["input_floor"]))
+        log.info("%s: %d designs, final rollout error median %.2f %%", split, len(names),
+                 100 * report["splits"][split]["rollout"][-1])
+    out = Path(cfg.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "diagnose.json").write_text(json.dumps(report, indent=1))
+    (out / "diagnose.md").write_text(markdown(report))
+    plot(report, out / "diagnose.png")
+    return report
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="diagnose")
+def main(cfg: DictConfig) -> None:
+    diagnose(cfg)
+
+
+if __name__ == "__main__":
+    main()
