@@ -19,12 +19,14 @@ def column_weights(block, stress_weight: float) -> torch.Tensor:
 
 def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_std: float = 0.0,
                    stress_weight: float = 1.0, generator: torch.Generator | None = None,
-                   geometry: str = "columns") -> torch.Tensor:
+                   geometry: str = "columns", through: bool = True) -> torch.Tensor:
     """Mean squared error of the states after 1..horizon steps from every start frame; `noise_std` (in units of
     the per-column step std) perturbs the start states so the model learns to correct its own drift.
     geometry="columns": every state column in units of its step std (stress columns weighted by stress_weight);
     geometry="points": the geometry as the points it rebuilds (what the evaluation measures), their distance to
-    the FEA's in units of the mean geometry step std, plus the stress columns as above."""
+    the FEA's in units of the mean geometry step std, plus the stress columns as above.
+    through=False stops the gradient between steps (the pushforward trick): every step is trained as a single step,
+    from the state the model itself reached, to the FEA's next state."""
     if geometry not in ("columns", "points"):
         raise ValueError(f"loss geometry={geometry!r}: must be columns | points")
     F = len(batch.t)
@@ -42,6 +44,8 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
         scale = scale.mean()
     loss = torch.zeros(())
     for k in range(h):
+        if not through:
+            j, b = j.detach(), b.detach()
         j, b = model.step(j, b, batch.static, batch.t[k:S + k])
         tj, tb = batch.joint_state[k + 1:S + k + 1], batch.beam_state[k + 1:S + k + 1]
         ej, eb = (j - tj) / model.joint_delta.std, (b - tb) / model.beam_delta.std

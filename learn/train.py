@@ -48,7 +48,8 @@ def evaluate_split(model: Simulator, data: GraphSet, cfg: DictConfig) -> dict:
     model.eval()
     with torch.no_grad():
         loss = float(multistep_loss(model, data, cfg.rollout_horizon, 0.0, cfg.stress_weight,
-                                     geometry=cfg.get("loss_geometry", "columns")))
+                                     geometry=cfg.get("loss_geometry", "columns"),
+                                  through=cfg.get("rollout_gradient", "through") == "through"))
     max_err, _ = rollout_errors(model, data)
     model.train()
     worst = max_err.max(axis=1)  # [items] max over frames
@@ -79,6 +80,8 @@ def train(cfg: DictConfig) -> dict:
 
 def _train(cfg: DictConfig, run_dir: Path) -> dict:
     term_retention(retention_of(cfg))  # a bad value stops here, before any data is read
+    if cfg.get("rollout_gradient", "through") not in ("through", "stop"):
+        raise ValueError(f"rollout_gradient={cfg.rollout_gradient!r}: must be through | stop")
     last = run_dir / LAST
     resumed = checkpoint.load(last) if cfg.resume and last.exists() else None
     if resumed is not None and resumed.get("finished"):
@@ -139,7 +142,8 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
         losses = []
         for batch in train_set.batches(cfg.batch_size, gen):
             loss = multistep_loss(model, batch, cfg.rollout_horizon, cfg.noise_std, cfg.stress_weight, gen,
-                                  geometry=cfg.get("loss_geometry", "columns"))
+                                  geometry=cfg.get("loss_geometry", "columns"),
+                                  through=cfg.get("rollout_gradient", "through") == "through")
             opt.zero_grad()
             loss.backward()
             if cfg.optim.grad_clip:

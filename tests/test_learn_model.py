@@ -155,3 +155,34 @@ def test_input_floor_is_zero_with_every_component_and_grows_as_the_pca_drops_som
         assert torch.equal(seen_j[..., JOINT.stress_slice], js[..., JOINT.stress_slice])  # stress untouched
         floors.append(input_floor(model, f).max() / f.design_size)
     assert floors[0] < 1e-5 < 1e-3 < floors[1]
+
+
+def test_a_stopped_rollout_gradient_trains_each_step_from_the_state_the_model_reached(features):
+    """multistep_loss(through=False): the same loss value, and the gradient of step 2 is that of a single step
+    from the (detached) state step 1 produced."""
+    from learn.metrics import multistep_loss
+    train = GraphSet.build(features[:2])
+    torch.manual_seed(0)
+    model = Simulator.fit({"core": "double_gn", "latent": 8, "widths": [16], "time_input": True},
+                          train.joint_state, train.beam_state, train.static, 1.0)
+    params = list(model.parameters())
+
+    def grads(loss):
+        return torch.cat([g.flatten() for g in torch.autograd.grad(loss, params)])
+
+    h, S = 2, len(train.t) - 2
+    through, stop = (multistep_loss(model, train, h, through=flag) for flag in (True, False))
+    assert torch.allclose(through, stop)
+    # by hand: step 1 from the FEA states, step 2 from step 1's output with its history cut
+    j, b = train.joint_state[:S], train.beam_state[:S]
+    total = torch.zeros(())
+    for k in range(h):
+        j, b = model.step(j.detach(), b.detach(), train.static, train.t[k:S + k])
+        ej = (j - train.joint_state[k + 1:S + k + 1]) / model.joint_delta.std
+        eb = (b - train.beam_state[k + 1:S + k + 1]) / model.beam_delta.std
+        w_j = torch.ones(JOINT.state_size)
+        w_b = torch.ones(BEAM.state_size)
+        total = total + (w_j * ej ** 2).mean() + (w_b * eb ** 2).mean()
+    g_stop = grads(stop)
+    assert torch.allclose(g_stop, grads(total / h), atol=1e-6)
+    assert not torch.allclose(grads(through), g_stop, atol=1e-6)
