@@ -138,7 +138,8 @@ def run_episode(i: int, design: Design, out: Path, cfg: DictConfig, overrides: l
         return {**record, "status": "contact", "reason": result.get("reason"),
                 "clearance_mm": result.get("clearance_mm")}
     if proc.returncode == EXIT_DIVERGED:
-        return {**record, "status": "diverged", "reason": result.get("reason"), "t": result.get("t")}
+        return {**record, "status": "diverged", "reason": result.get("reason"), "t": result.get("t"),
+                **{k: result[k] for k in ("last_t", "last_clearance_mm", "last_clearance_blocks") if k in result}}
     tail = (proc.stderr or proc.stdout)[-1500:]
     return {**record, "status": "error", "returncode": proc.returncode, "reason": tail}
 

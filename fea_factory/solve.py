@@ -76,6 +76,16 @@ def solve_design(design: Design, cfg, comm, progress=None):
     return keyed, frames, solver.stats, scene
 
 
+def failure_clearance(fail: SolveFailure, design: Design, cfg) -> dict:
+    """The clearance (fea_factory.clearance) of the last state a failed solve reached, as last_* fields: a value
+    near zero says the grid was folding onto itself, which a model without contact cannot follow."""
+    if fail.last_xyz is None:
+        return {}
+    keyed = build_keyed_mesh(design, MeshPreset.from_mapping(cfg.mesh))  # the key tables only (cheap)
+    c = clearance(fail.last_xyz, keyed.joint_nodes, keyed.beam_nodes, design.beams).as_dict()
+    return {"last_t": fail.last_t, "last_clearance_mm": c["clearance_mm"], "last_clearance_blocks": c["clearance_blocks"]}
+
+
 def episode_from_solution(design: Design, keyed, frames, stats: dict, scene: Scene, config_yaml: str,
                           seed: int, mpi_size: int):
     """The episode record (data_schema) of a solved design."""
@@ -126,7 +136,8 @@ def main() -> None:
             keyed, frames, stats, scene = solve_design(design, cfg, comm)
         except SolveFailure as fail:
             if comm.rank == 0:
-                print(json.dumps({"status": "diverged", "design": str(cfg.design), **fail.info}))
+                print(json.dumps({"status": "diverged", "design": str(cfg.design), **fail.info,
+                                  **failure_clearance(fail, design, cfg)}))
             sys.exit(EXIT_DIVERGED)
         if comm.rank == 0:
             c = clearance(np.stack(frames.node_xyz), keyed.joint_nodes, keyed.beam_nodes, design.beams)

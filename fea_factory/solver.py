@@ -99,6 +99,8 @@ class SolveFailure(RuntimeError):
     def __init__(self, reason: str, t: float, dt: float, increment: int, history: list):
         super().__init__(f"{reason} at t = {t:.5g} (dt = {dt:.3g}, increment {increment})")
         self.info = {"reason": reason, "t": t, "dt": dt, "increment": increment, "residual_history": history}
+        self.last_xyz: np.ndarray | None = None  # [N, 3] key order, rank 0: the last state the solve reached
+        self.last_t: float | None = None
 
 
 SNES_REASONS = {-1: "function domain error", -2: "function count", -3: "linear solve failed",
@@ -441,14 +443,15 @@ class GridSolver:
                              t_now + dt, cut, why)
                     try:
                         t_new, its = self._cross_instability(t_now, target, why)
-                    except SolveFailure:
+                    except SolveFailure as fail:  # u holds the last damped state accepted
                         self.stats["wall_solve_s"] = time.perf_counter() - t_start
-                        raise
+                        raise self._with_last_state(fail, fail.info["t"])
                     dt, crossed = t_new - t_now, True
                     break
                 if cut > s.max_cutbacks or not s.adaptive:
                     self.stats["wall_solve_s"] = time.perf_counter() - t_start
-                    raise SolveFailure(why, t_now + dt, dt, increment, history)
+                    x_backup.copy(self.u.vector)  # back to the last converged state, for the failure report
+                    raise self._with_last_state(SolveFailure(why, t_now + dt, dt, increment, history), t_now)
                 log.info("increment at t=%.4g failed (%s); cutting dt %.3g -> %.3g", t_now + dt, why, dt, dt / 2)
                 self.snes.getKSP().reset()
                 dt /= 2
@@ -574,6 +577,14 @@ class GridSolver:
         accepted.copy(self.u.vector)
         raise SolveFailure(f"{why}; stabilized steps from t = {t_now:.5g} found no undamped equilibrium "
                            f"(reached t = {t:.5g}, alpha {alpha / alpha0:.3g} x mu0 h^2 / L^4)", t, dt, 0, [])
+
+    def _with_last_state(self, fail: SolveFailure, t: float) -> SolveFailure:
+        """fail with the current displacement's node positions (collective; rank 0 keeps them), so a failure
+        report can say how the grid looked where the solve stopped (e.g. its clearance: folding onto itself)."""
+        out = self._gather_frame()
+        if out is not None and np.isfinite(out[0]).all():
+            fail.last_xyz, fail.last_t = out[0], float(t)
+        return fail
 
     def _save(self, frames: Frames, t: float) -> None:
         t0 = time.perf_counter()

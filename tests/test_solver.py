@@ -212,14 +212,27 @@ def test_diverged_solve_is_a_structured_failure():
                                                    stabilize=False))
     info = err.value.info
     assert info["reason"] and info["t"] > 0 and isinstance(info["residual_history"], list)
+    # the last state reached is kept for the failure report: here the start, t = 0, undeformed
+    from fea_factory.mesh import build_keyed_mesh
+    from omegaconf import OmegaConf
+
+    from fea_factory.solve import failure_clearance
+    design, preset = strip_design(30.0), MeshPreset(5, 3, 3, "c")
+    assert err.value.last_t == 0.0
+    assert np.allclose(err.value.last_xyz, build_keyed_mesh(design, preset).node_xyz, atol=1e-9)
+    mesh_cfg = OmegaConf.create({"mesh": {"nodes_length": 5, "nodes_width": 3, "nodes_height": 3}})
+    record = failure_clearance(err.value, design, mesh_cfg)
+    assert record["last_t"] == 0.0 and record["last_clearance_mm"] == pytest.approx(30.0)  # joint to joint, flat
 
 
 def test_stabilized_crossing_that_finds_no_equilibrium_is_a_structured_failure():
     mat = neo_hookean(1.2, 0.3)
-    with pytest.raises(SolveFailure, match="stabilized steps from t = 0 found no undamped equilibrium"):
+    with pytest.raises(SolveFailure, match="stabilized steps from t = 0 found no undamped equilibrium") as err:
         solve(strip_design(30.0), MeshPreset(5, 3, 3, "c"), mat, bottom_layer_prestress(5.0), NO_GRAVITY,
               np.zeros(3), settings=SolverSettings(increments=1, save_every=1, max_cutbacks=1, max_it=5,
                                                    stabilize=True, stabilize_max_steps=3))
+    # the last damped state accepted is kept for the report (finite, where the damped steps reached)
+    assert err.value.last_t == err.value.info["t"] and np.isfinite(err.value.last_xyz).all()
 
 
 def test_frames_reached_through_stabilized_steps_are_the_undamped_equilibria():
