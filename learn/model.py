@@ -275,7 +275,7 @@ class Simulator(nn.Module):
 
     @classmethod
     def fit(cls, args: dict, joint_state: torch.Tensor, beam_state: torch.Tensor, static: Static,
-            retention: float | dict = 0.98, delta_floor: float = 0.01) -> "Simulator":
+            retention: float | dict = 1.0, delta_floor: float = 0.01) -> "Simulator":
         """A simulator whose PCA and normalisers are fitted on training states [F, J, Dj], [F, B, Db]."""
         probe = cls({**args, "pca": {t: [1, 1] for t in TERMS}})
         R = probe.frames(joint_state, beam_state)
