@@ -83,7 +83,8 @@ def failure_clearance(fail: SolveFailure, design: Design, cfg) -> dict:
         return {}
     keyed = build_keyed_mesh(design, MeshPreset.from_mapping(cfg.mesh))  # the key tables only (cheap)
     c = clearance(fail.last_xyz, keyed.joint_nodes, keyed.beam_nodes, design.beams).as_dict()
-    return {"last_t": fail.last_t, "last_clearance_mm": c["clearance_mm"], "last_clearance_blocks": c["clearance_blocks"]}
+    return {"last_t": fail.last_t, "last_clearance_mm": c["clearance_mm"],
+            "last_clearance_blocks": c["clearance_blocks"]}
 
 
 def episode_from_solution(design: Design, keyed, frames, stats: dict, scene: Scene, config_yaml: str,

@@ -111,7 +111,8 @@ def diagnose(cfg: DictConfig) -> dict:
     data_dir = Path(cfg.data_dir or ckpt["config"]["data_dir"])
     unknown = [s for s in cfg.splits if s not in ckpt["split"]]
     if unknown:
-        raise ValueError(f"splits={list(cfg.splits)}: {unknown} not in {cfg.checkpoint}; allowed {sorted(ckpt['split'])}")
+        raise ValueError(f"splits={list(cfg.splits)}: {unknown} not in {cfg.checkpoint}; "
+                         f"allowed {sorted(ckpt['split'])}")
     report = {"checkpoint": str(cfg.checkpoint), "data_dir": str(data_dir), "splits": {}}
     for split in cfg.splits:
         names = sorted(ckpt["split"][split])[: int(cfg.max_designs)] if cfg.max_designs else ckpt["split"][split]
@@ -119,7 +120,6 @@ def diagnose(cfg: DictConfig) -> dict:
             continue
         data = GraphSet.build(load_features([data_dir / n for n in names]))
         report["splits"][split] = {"n_designs": len(names), **medians(diagnose_set(model, data))}
-        report["splits"][split]["input_floor"] = float(np.median(report["splits"][split]["input_floor"]))
         log.info("%s: %d designs, final rollout error median %.2f %%", split, len(names),
                  100 * report["splits"][split]["rollout"][-1])
     out = Path(cfg.out_dir)

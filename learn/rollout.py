@@ -145,4 +145,3 @@ def input_floor(model: Simulator, source) -> np.ndarray:
         js, bs = torch.as_tensor(f.joint_state), torch.as_tensor(f.beam_state)
         seen = rebuild_all_points(*model.input_geometry(js, bs, static))
         return (seen - rebuild_all_points(js, bs)).norm(dim=-1).numpy()
-

@@ -48,8 +48,7 @@ def evaluate_split(model: Simulator, data: GraphSet, cfg: DictConfig) -> dict:
     model.eval()
     with torch.no_grad():
         loss = float(multistep_loss(model, data, cfg.rollout_horizon, 0.0, cfg.stress_weight,
-                                     geometry=cfg.get("loss_geometry", "columns"),
-                                  through=cfg.get("rollout_gradient", "through") == "through"))
+                                     geometry=cfg.get("loss_geometry", "columns")))
     max_err, _ = rollout_errors(model, data)
     model.train()
     worst = max_err.max(axis=1)  # [items] max over frames
@@ -118,7 +117,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
     log.info("PCA dims %s; %d parameters", {t: p.k for t, p in model.pca.items()}, model.n_parameters)
     floor = max(float(input_floor(model, f).max() / f.design_size) for f in val_set.items)
     log.info("input floor: the PCA'd geometry inputs rebuild the validation designs' points within %.3g %% of the "
-             "design size (pca_retention %s)", 100 * floor, retention_of(cfg))
+             "design size", 100 * floor)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.optim.lr, weight_decay=cfg.optim.weight_decay)
     history, best, bad, start = [], math.inf, 0, 0
     if resumed:
