@@ -24,7 +24,7 @@ from omegaconf import DictConfig
 from learn import checkpoint
 from learn.dataset import GraphSet, load_features
 from learn.features import rebuild_all_points
-from learn.metrics import fea_points, point_owner
+from learn.metrics import fea_points, max_per_item, point_owner
 from learn.model import Simulator
 from learn.rollout import input_floor, unroll
 
@@ -32,14 +32,6 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 log = logging.getLogger(__name__)
-
-
-def max_per_design(err: np.ndarray, owner: np.ndarray, n: int) -> np.ndarray:
-    """[..., P] point errors -> [..., n] the largest per design."""
-    out = np.zeros((*err.shape[:-1], n))
-    for idx in np.ndindex(err.shape[:-1]):
-        np.maximum.at(out[idx], owner, err[idx])
-    return out
 
 
 def diagnose_set(model: Simulator, data: GraphSet) -> dict:
@@ -57,7 +49,7 @@ def diagnose_set(model: Simulator, data: GraphSet) -> dict:
             js, bs = unroll(model, data.joint_state[s], data.beam_state[s], data.static, data.t[s:])
             from_start.append(rebuild_all_points(js[-1], bs[-1]).numpy())
     dist = lambda a, b: np.linalg.norm(a - b, axis=-1)  # noqa: E731
-    rel = lambda e: (max_per_design(e, owner, n) / size).T  # noqa: E731  [n, ...]
+    rel = lambda e: (max_per_item(e, owner, n) / size).T  # noqa: E731  [n, ...]
     return {"rollout": rel(dist(rollout[1:], truth[1:])), "one_step": rel(dist(one_step, truth[1:])),
             "motion": rel(dist(truth[1:], truth[:-1])),
             "final_from_start": rel(dist(np.stack(from_start), truth[-1][None])),

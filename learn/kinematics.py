@@ -97,16 +97,26 @@ def _point_mask(block: Block) -> torch.Tensor:
 POINTS = {JOINT.name: _point_mask(JOINT), BEAM.name: _point_mask(BEAM)}
 
 
+def relative_to(geometry: torch.Tensor, origin: torch.Tensor, block: Block) -> torch.Tensor:
+    """[..., n, G] geometry with its point fields taken relative to origin [..., n, 3] (vectors unchanged)."""
+    fields = geometry.unflatten(-1, (-1, 3)) - POINTS[block.name].to(geometry) * origin[..., None, :]
+    return fields.flatten(-2)
+
+
+def placed_at(rel: torch.Tensor, origin: torch.Tensor, block: Block) -> torch.Tensor:
+    """Inverse of relative_to: the point fields moved back by origin [..., n, 3]."""
+    fields = rel.unflatten(-1, (-1, 3)) + POINTS[block.name].to(rel) * origin[..., None, :]
+    return fields.flatten(-2)
+
+
 def to_parent(geometry: torch.Tensor, origin: torch.Tensor, R: torch.Tensor, block: Block) -> torch.Tensor:
     """[..., n, G] global geometry -> the same in the parent frames R [..., n, 3, 3] with origins [..., n, 3]."""
-    fields = geometry.unflatten(-1, (-1, 3)) - POINTS[block.name].to(geometry) * origin[..., None, :]
-    return frames.rotate_vectors(fields.flatten(-2), R, to_local=True)
+    return frames.rotate_vectors(relative_to(geometry, origin, block), R, to_local=True)
 
 
 def from_parent(rel: torch.Tensor, origin: torch.Tensor, R: torch.Tensor, block: Block) -> torch.Tensor:
     """Inverse of to_parent."""
-    fields = frames.rotate_vectors(rel, R, to_local=False).unflatten(-1, (-1, 3))
-    return (fields + POINTS[block.name].to(rel) * origin[..., None, :]).flatten(-2)
+    return placed_at(frames.rotate_vectors(rel, R, to_local=False), origin, block)
 
 
 def relative(joint_state, beam_state, t: Tree) -> tuple[torch.Tensor, torch.Tensor]:

@@ -74,6 +74,14 @@ def fea_points(batch: GraphSet) -> np.ndarray:
     return np.concatenate(joint_parts + beam_parts, axis=1)
 
 
+def max_per_item(err: np.ndarray, owner: np.ndarray, n: int) -> np.ndarray:
+    """[..., P] point errors -> [..., n] the largest of each item's points (owner: point_owner)."""
+    out = np.zeros((*err.shape[:-1], n))
+    for idx in np.ndindex(err.shape[:-1]):
+        np.maximum.at(out[idx], owner, err[idx])
+    return out
+
+
 def rollout_errors(model: Simulator, batch: GraphSet) -> tuple[np.ndarray, np.ndarray]:
     """Full rollouts from frame 0 of every item -> max and mean point error / design size, each [n_items, F]."""
     with torch.inference_mode():
@@ -83,9 +91,7 @@ def rollout_errors(model: Simulator, batch: GraphSet) -> tuple[np.ndarray, np.nd
     owner = point_owner(batch)
     size = np.array([f.design_size for f in batch.items])
     n = len(batch)
-    max_err = np.zeros((n, err.shape[0]))
-    for frame, e in enumerate(err):
-        np.maximum.at(max_err[:, frame], owner, e)
+    max_err = max_per_item(err, owner, n).T  # [n, F]
     counts = np.bincount(owner, minlength=n)
     mean_err = np.stack([np.bincount(owner, weights=e, minlength=n) / counts for e in err], axis=1)
     return max_err / size[:, None], mean_err / size[:, None]

@@ -81,9 +81,7 @@ def with_current_position(bc: torch.Tensor, state: torch.Tensor, block: Block) -
 
 def local_geometry(geometry: torch.Tensor, block: Block) -> torch.Tensor:
     """[..., n, G] geometry with every point relative to the block's own origin point."""
-    origin = geometry[..., block.origin_slice]
-    fields = geometry.unflatten(-1, (-1, 3)) - kinematics.POINTS[block.name].to(geometry) * origin[..., None, :]
-    return fields.flatten(-2)
+    return kinematics.relative_to(geometry, geometry[..., block.origin_slice], block)
 
 
 TERM_KINDS = ("geometry", "stress", "bc")
@@ -183,10 +181,9 @@ class Simulator(nn.Module):
             local = pca.inverse(pca(raw[f"{block.name}_geometry"]))
             if R_block is not None:
                 local = frames.rotate_vectors(local, R_block, to_local=False)
-            origin = state[..., block.origin_slice]
-            fields = local.unflatten(-1, (-1, 3)) + kinematics.POINTS[block.name].to(local) * origin[..., None, :]
             g = block.geometry_slice
-            out.append(torch.cat([state[..., :g.start], fields.flatten(-2), state[..., g.stop:]], -1))
+            placed = kinematics.placed_at(local, state[..., block.origin_slice], block)
+            out.append(torch.cat([state[..., :g.start], placed, state[..., g.stop:]], -1))
         return out[0], out[1]
 
     def edge_features(self, joint_state, beam_state, g: GraphIndex, R=(None, None)) -> torch.Tensor:
