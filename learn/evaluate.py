@@ -80,18 +80,25 @@ def timings(model: Simulator, features: list[EpisodeFeatures], repeats: int) -> 
     }
 
 
+def split_paths(split: str, stored: dict[str, list[str]], data_dir: Path, source: str) -> list[Path]:
+    """Episode paths of `split`: 'all' (every *.h5 in data_dir, e.g. designs generated apart from training), one
+    split stored in the checkpoint, or several joined by '+' (val+test: every design the weights never saw)."""
+    if split == "all":
+        return episode_paths(data_dir)
+    names = str(split).split("+")
+    unknown = [n for n in names if n not in stored]
+    if unknown:
+        raise ValueError(f"split={split!r}: allowed are {sorted(stored)} (stored in {source}), several of them "
+                         "joined by '+', or 'all' (every *.h5 in data_dir)")
+    return [data_dir / e for n in dict.fromkeys(names) for e in stored[n]]
+
+
 def evaluate(cfg: DictConfig) -> dict:
     torch.set_num_threads(int(cfg.threads))
     ckpt = checkpoint.load(cfg.checkpoint)
     model = checkpoint.model_from(ckpt)
     data_dir = Path(cfg.data_dir or ckpt["config"]["data_dir"])
-    if cfg.split == "all":  # every episode in data_dir, e.g. designs outside the training ranges
-        paths = episode_paths(data_dir)
-    elif cfg.split in ckpt["split"]:
-        paths = [data_dir / n for n in ckpt["split"][cfg.split]]
-    else:
-        raise ValueError(f"split={cfg.split!r}: allowed are {sorted(ckpt['split'])} (stored in {cfg.checkpoint}) "
-                         "or 'all' (every *.h5 in data_dir)")
+    paths = split_paths(cfg.split, ckpt["split"], data_dir, cfg.checkpoint)
     if not paths:
         raise ValueError(f"split {cfg.split!r} of {cfg.checkpoint} is empty")
     features = load_features(paths)

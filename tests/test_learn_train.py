@@ -142,11 +142,16 @@ def test_evaluate_writes_the_report(trained, tmp_path):
     assert (tmp_path / "overlay_best_median_worst.png").exists()
 
 
-def test_evaluate_all_episodes_of_a_directory_and_refuse_an_unknown_split(trained, data_dir, tmp_path):
+def test_evaluate_all_episodes_joined_splits_and_refuse_an_unknown_split(trained, data_dir, tmp_path):
     run, _ = trained
     base = [f"checkpoint={run / 'best.pt'}", f"data_dir={data_dir}", "timing_repeats=1", "plots=false"]
     report = evaluate(cfg_for("evaluate", base + [f"out_dir={tmp_path / 'all'}", "split=all"]))
     assert report["n_designs"] == len(list(Path(data_dir).glob("*.h5")))
+    split = checkpoint.load(run / "best.pt")["split"]
+    joined = evaluate(cfg_for("evaluate", base + [f"out_dir={tmp_path / 'joined'}", "split=val+test"]))
+    assert sorted(d["name"] for d in joined["designs"]) == sorted(split["val"] + split["test"])
+    with pytest.raises(ValueError, match="split='val\\+holdout'.*allowed"):
+        evaluate(cfg_for("evaluate", base + [f"out_dir={tmp_path / 'bad'}", "split=val+holdout"]))
     with pytest.raises(ValueError, match="split='holdout'.*allowed"):
         evaluate(cfg_for("evaluate", base + [f"out_dir={tmp_path / 'bad'}", "split=holdout"]))
 
