@@ -12,7 +12,7 @@ export OMPI_ALLOW_RUN_AS_ROOT=1
 export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset validate bench-fea stability tradeoff train evaluate diagnose sweep learned-extremes clean
+.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset validate bench-fea stability tradeoff train evaluate diagnose predict sweep learned-extremes clean
 
 help:  ## list the targets
 	@grep -E '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-12s %s\n", $$1, $$2}'
@@ -47,6 +47,10 @@ evaluate:  ## roll out the trained model on the held-out split; report in runs/e
 
 diagnose:  ## where a checkpoint's error comes from: one-step vs rollout, train vs test (CKPT=runs/train/best.pt; runs/diagnose/)
 	$(PY) -m learn.diagnose checkpoint=$(or $(CKPT),runs/train/best.pt)
+
+predict:  ## learned morph of one design, no FEA (DESIGN=x.json CKPT=runs/train/best.pt; runs/predict/: ParaView view, verdict, png)
+	$(PY) -m fea_factory.initial design=$(or $(DESIGN),$(OUT)/designs/episode_00000.json) out=runs/predict/initial.h5
+	$(PY) -m learn.predict checkpoint=$(or $(CKPT),runs/train/best.pt) episode=runs/predict/initial.h5 out_dir=runs/predict
 
 sweep:  ## Hydra multirun grid search over latent sizes and MLP widths (runs/sweep/results.csv)
 	$(PY) -m learn.train -m +sweep=grid data_dir=$(OUT)

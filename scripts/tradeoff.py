@@ -175,7 +175,7 @@ def learned_row(model, ref_ep, name: str, pd_name: str, size: float, repeats: in
     ref = corner_positions(ref_ep, slice(1, None))
     d = np.linalg.norm(r.points[1:, idx] - ref, axis=-1)
     mx, mean = float(d.max() / size), float(d.mean() / size)
-    thresholds = OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / "evaluate.yaml").validity)
+    thresholds = OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / "validity" / "default.yaml"))
     verdict = check(model, r, **thresholds)
     row.update(max_rel_error=mx, mean_rel_error=mean, max_error_mm=float(d.max()))
     row["valid"] = bool(verdict.valid)

@@ -1,0 +1,130 @@
+"""Predict a design's morph with a trained simulator: `.venv/bin/python -m learn.predict` (conf/predict.yaml).
+
+The input is an episode whose frame 0 is the design before triggering: a one-frame episode from
+`python -m fea_factory.initial design=...` (no solve; `make predict DESIGN=...` runs both) or any solved episode,
+whose later frames are then the FEA reference the prediction is compared with. Writes into out_dir:
+- prediction.view.xdmf (+ .view.h5): the predicted shape per frame as a coarse hex mesh (one hexahedron per joint,
+  two per beam, learn.shapes), displacement from frame 0 (ParaView: Warp By Vector) and, with an FEA reference,
+  its displacement and the point error (mm);
+- prediction.json: the validity verdict (a flagged rollout is not an answer), the wall time of the rollout and,
+  with a reference, max / mean error over frames as a fraction of the design size;
+- prediction.png: the final shape (and the FEA's).
+"""
+from __future__ import annotations
+
+import json
+import logging
+import textwrap
+import time
+from pathlib import Path
+
+import hydra
+import matplotlib
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from data_schema.episode import read_episode
+from data_schema.view import write_series
+from learn import checkpoint
+from learn.features import extract
+from learn.rollout import Rollout, rollout
+from learn.shapes import block_hexahedra
+from learn.validity import check
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+log = logging.getLogger(__name__)
+
+
+def has_reference(r: Rollout) -> bool:
+    """True when the source episode holds FEA frames at the rollout's times."""
+    f = r.features
+    return f.n_frames == r.n_frames and np.allclose(f.t, r.t)
+
+
+def write_view(r: Rollout, path: Path) -> Path:
+    cells, block = block_hexahedra(r.features.incidence.n_joints, r.features.incidence.n_beams)
+    points = r.points
+    point_data = {"displacement": points - points[0]}
+    if has_reference(r):
+        fea = r.features.fea_points + r.origin
+        point_data.update(fea_displacement=fea - points[0], error_mm=np.linalg.norm(points - fea, axis=-1))
+    return write_series(path, points[0], cells, r.t, point_data=point_data, static_cell_data={"block": block})
+
+
+HEX_EDGES = ((0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4), (0, 4), (1, 5), (2, 6), (3, 7))
+
+
+def plot_prediction(r: Rollout, title: str, path: Path) -> None:
+    """Final frame as hex wireframes: the prediction (red), the FEA when the episode has it (blue), the design."""
+    from mpl_toolkits.mplot3d.art3d import Line3DCollection
+
+    cells, _ = block_hexahedra(r.features.incidence.n_joints, r.features.incidence.n_beams)
+    edges = np.asarray(HEX_EDGES)
+    segments = lambda pts: pts[cells[:, edges]].reshape(-1, 2, 3)  # noqa: E731
+    shapes = [(r.points[0], "0.75", "design (t = 0)"), (r.points[-1], "tab:red", "learned")]
+    if has_reference(r):
+        shapes.insert(1, (r.features.fea_points[-1] + r.origin, "tab:blue", "FEA"))
+    fig = plt.figure(figsize=(7, 6))
+    ax = fig.add_subplot(projection="3d")
+    for pts, color, label in shapes:
+        ax.add_collection3d(Line3DCollection(segments(pts), colors=color, linewidths=0.6, label=label))
+    lo, hi = r.points.reshape(-1, 3).min(axis=0), r.points.reshape(-1, 3).max(axis=0)
+    c, half = 0.5 * (lo + hi), 0.5 * (hi - lo).max()
+    ax.set(xlim=(c[0] - half, c[0] + half), ylim=(c[1] - half, c[1] + half), zlim=(c[2] - half, c[2] + half),
+           xlabel="x mm", ylabel="y mm", zlabel="z mm")
+    ax.set_title("\n".join(textwrap.wrap(title, 70)), fontsize=9)
+    ax.legend(loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def predict(cfg: DictConfig) -> dict:
+    torch.set_num_threads(int(cfg.threads))
+    steps = int(cfg.steps)
+    if steps < 1:
+        raise ValueError(f"steps={steps}: must be >= 1 (the training episodes have 10)")
+    ckpt = checkpoint.load(cfg.checkpoint)
+    model = checkpoint.model_from(ckpt)
+    episode = Path(cfg.episode)
+    f = extract(read_episode(episode), name=episode.name)
+    start = time.perf_counter()
+    r = rollout(model, f, steps=steps)
+    rollout_ms = 1e3 * (time.perf_counter() - start)
+    verdict = check(model, r, **OmegaConf.to_container(cfg.validity), envelope=ckpt.get("envelope"))
+    out_dir = Path(cfg.out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    result = {
+        "episode": str(episode), "checkpoint": str(cfg.checkpoint), "steps": steps, "t": r.t.tolist(),
+        "design_size_mm": f.design_size, "valid": verdict.valid, "validity": verdict.as_dict(),
+        "rollout_ms": rollout_ms, "threads": int(cfg.threads),
+        "timing": "rollout_ms: one eager rollout (initial graph -> rebuilt points of every frame), first call; "
+                  "learn.evaluate measures the compiled steady state",
+        "view": str(write_view(r, out_dir / "prediction.view.xdmf")),
+    }
+    if has_reference(r):
+        err = np.linalg.norm(r.local_points - f.fea_points, axis=-1)  # [F, P] mm
+        result.update(max_rel_error=float(err.max() / f.design_size), mean_rel_error=float(err.mean() / f.design_size),
+                      max_rel_error_per_frame=(err.max(axis=1) / f.design_size).tolist(), reference="FEA frames of "
+                      "the input episode")
+    verdict_text = "valid" if verdict.valid else "FLAGGED: " + "; ".join(verdict.reasons)
+    err_text = f", max error {100 * result['max_rel_error']:.2f} % of {f.design_size:.0f} mm" \
+        if "max_rel_error" in result else ""
+    if cfg.plots:
+        plot_prediction(r, f"{episode.name}: {steps} steps{err_text}; {verdict_text}", out_dir / "prediction.png")
+    (out_dir / "prediction.json").write_text(json.dumps(result, indent=1))
+    log.info("%s: %d steps in %.1f ms%s; %s -> %s", episode.name, steps, rollout_ms, err_text, verdict_text,
+             out_dir)
+    return result
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="predict")
+def main(cfg: DictConfig) -> None:
+    predict(cfg)
+
+
+if __name__ == "__main__":
+    main()
