@@ -18,7 +18,7 @@ from learn import checkpoint
 from learn.dataset import GraphSet, episode_paths, load_features
 from learn.features import EpisodeFeatures, rebuild_all_points
 from learn.model import Simulator, static_from
-from learn.rollout import compile_rollout, graph_inputs, input_floor, reference, rollout, unroll
+from learn.rollout import answer_unroll, compile_rollout, graph_inputs, input_floor, reference, rollout
 from learn.validity import check
 
 log = logging.getLogger(__name__)
@@ -55,7 +55,7 @@ def eager_rollout(model: Simulator, f: EpisodeFeatures):
     static = static_from(f.joint_bc, f.beam_bc, f.incidence)
     j0, b0 = torch.as_tensor(f.joint_state[0]), torch.as_tensor(f.beam_state[0])
     t = torch.as_tensor(f.t, dtype=torch.float32)
-    return lambda: rebuild_all_points(*unroll(model, j0, b0, static, t))
+    return lambda: rebuild_all_points(*answer_unroll(model, j0, b0, static, t))
 
 
 def timings(model: Simulator, features: list[EpisodeFeatures], repeats: int) -> dict:
@@ -70,8 +70,8 @@ def timings(model: Simulator, features: list[EpisodeFeatures], repeats: int) -> 
             if not np.allclose(got, want, atol=1e-3 + 1e-5 * np.abs(want).max()):
                 raise RuntimeError(f"compiled rollout differs from eager on {f.name}")
     batch = GraphSet.build(features)
-    batched = lambda: rebuild_all_points(*unroll(model, batch.joint_state[0], batch.beam_state[0],  # noqa: E731
-                                                 batch.static, batch.t))
+    batched = lambda: rebuild_all_points(*answer_unroll(model, batch.joint_state[0],  # noqa: E731
+                                                        batch.beam_state[0], batch.static, batch.t))
     return {
         "compiled": float(np.median([median_seconds(lambda: compiled(*graph_inputs(f)), repeats) for f in features])),
         "eager": float(np.median([median_seconds(eager_rollout(model, f), repeats) for f in features])),
@@ -96,7 +96,7 @@ def split_paths(split: str, stored: dict[str, list[str]], data_dir: Path, source
 def evaluate(cfg: DictConfig) -> dict:
     torch.set_num_threads(int(cfg.threads))
     ckpt = checkpoint.load(cfg.checkpoint)
-    model = checkpoint.model_from(ckpt)
+    model = checkpoint.model_from(ckpt).answer_with(cfg.rollout_rotations)
     data_dir = Path(cfg.data_dir or ckpt["config"]["data_dir"])
     paths = split_paths(cfg.split, ckpt["split"], data_dir, cfg.checkpoint)
     if not paths:

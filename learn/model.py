@@ -87,6 +87,13 @@ def local_geometry(geometry: torch.Tensor, block: Block) -> torch.Tensor:
 TERM_KINDS = ("geometry", "stress", "bc")
 
 
+def rollout_rotations_checked(value, name: str) -> int:
+    """A rotation count for answer_unroll: an integer in [1, 64]."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or int(value) != value or not 1 <= value <= 64:
+        raise ValueError(f"{name}={value!r}: must be an integer in [1, 64] (1 = the network alone)")
+    return int(value)
+
+
 def term_retention(retention: float | dict) -> dict[str, float]:
     """pca_retention as {term kind: variance fraction kept}: one number for every term, or a mapping with a value
     per kind (geometry, stress, bc); each in (0, 1]."""
@@ -297,6 +304,17 @@ class Simulator(nn.Module):
                 norm = Normalizer.fit(x.reshape(-1, x.shape[-1]).numpy(), delta_floor)
                 getattr(model, name).load_state_dict(norm.state_dict())
         return model
+
+    @property
+    def rollout_rotations(self) -> int:
+        """Rotations about z a rollout is averaged over (learn.rollout.answer_unroll); 1: the network alone."""
+        return int(self.args.get("rollout_rotations", 1))
+
+    def answer_with(self, rollout_rotations) -> "Simulator":
+        """Override the stored rollout_rotations (None keeps it); returns self."""
+        if rollout_rotations is not None:
+            self.args["rollout_rotations"] = rollout_rotations_checked(rollout_rotations, "rollout_rotations")
+        return self
 
     @property
     def n_parameters(self) -> int:

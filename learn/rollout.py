@@ -8,8 +8,9 @@ import numpy as np
 import torch
 
 from learn.features import EpisodeFeatures, extract, rebuild_all_points
-from learn.graph import JOINT, GraphIndex
+from learn.graph import BEAM, JOINT, GraphIndex
 from learn.model import Simulator, Static, static_from
+from learn.symmetry import rotation_angles, rotation_z, state_rotation, term_rotation
 
 
 def unroll(model: Simulator, joint_state: torch.Tensor, beam_state: torch.Tensor, static: Static,
@@ -23,6 +24,35 @@ def unroll(model: Simulator, joint_state: torch.Tensor, beam_state: torch.Tensor
     return torch.stack(joints), torch.stack(beams)
 
 
+def _rotations(block, n: int, dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Rotations about z by n angles evenly spread over a turn (the first 0) as state matrices [n, S, S] (x @ M),
+    their inverses, and the bc matrices [n, D, D]."""
+    Rs = [rotation_z(a) for a in rotation_angles(n)]
+    as_t = lambda ms: torch.as_tensor(np.stack(ms), dtype=dtype)  # noqa: E731
+    return (as_t([state_rotation(block, R) for R in Rs]), as_t([state_rotation(block, R.T) for R in Rs]),
+            as_t([term_rotation(block.bc, R) for R in Rs]))
+
+
+def answer_unroll(model: Simulator, joint_state: torch.Tensor, beam_state: torch.Tensor, static: Static,
+                  t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """unroll as the trained simulator answers: with model.rollout_rotations = n > 1, the design is rolled out in n
+    frames rotated about z through the fixed joint (the origin of the features; one batch), every copy rotated
+    back and the states averaged. The average over the rotation group makes the answer exactly equivariant to
+    those n rotations, which the network alone is only approximately (it learned rotations from augmentation);
+    training and its validation use the network alone (unroll)."""
+    n = model.rollout_rotations
+    if n <= 1:
+        return unroll(model, joint_state, beam_state, static, t)
+    Mj, Mj_back, Mjbc = _rotations(JOINT, n, joint_state.dtype)
+    Mb, Mb_back, Mbbc = _rotations(BEAM, n, beam_state.dtype)
+    rot = lambda x, M: torch.einsum("...nd,kde->k...ne", x, M)  # noqa: E731  [..., N, D] -> [k, ..., N, D]
+    copies = Static(rot(static.joint_bc, Mjbc), rot(static.beam_bc, Mbbc), static.index,
+                    static.kinematic_tree() if model.kinematic else None)  # one tree: rotations keep the topology
+    js, bs = unroll(model, rot(joint_state, Mj), rot(beam_state, Mb), copies, t)  # [F, k, ..., N, S]
+    back = lambda x, M: torch.einsum("fk...nd,kde->f...ne", x, M) / n  # noqa: E731
+    return back(js, Mj_back), back(bs, Mb_back)
+
+
 class _Unroll(torch.nn.Module):
     """unroll + rebuild_all_points with the graph passed as tensors, so one trace serves every graph size."""
 
@@ -32,7 +62,7 @@ class _Unroll(torch.nn.Module):
 
     def forward(self, joint_state, beam_state, joint_bc, beam_bc, senders, receivers, edge_beam, t):
         index = GraphIndex(senders, receivers, edge_beam, joint_state.shape[-2], beam_state.shape[-2])
-        js, bs = unroll(self.model, joint_state, beam_state, Static(joint_bc, beam_bc, index), t)
+        js, bs = answer_unroll(self.model, joint_state, beam_state, Static(joint_bc, beam_bc, index), t)
         return js, bs, rebuild_all_points(js, bs)
 
 
@@ -119,8 +149,8 @@ def rollout(model: Simulator, source, steps: int = 10, t: np.ndarray | None = No
     t = np.asarray(t, dtype=np.float64)
     static = static_from(f.joint_bc, f.beam_bc, f.incidence)
     with torch.inference_mode():
-        js, bs = unroll(model, torch.as_tensor(f.joint_state[0]), torch.as_tensor(f.beam_state[0]), static,
-                        torch.as_tensor(t, dtype=torch.float32))
+        js, bs = answer_unroll(model, torch.as_tensor(f.joint_state[0]), torch.as_tensor(f.beam_state[0]), static,
+                               torch.as_tensor(t, dtype=torch.float32))
         pts = rebuild_all_points(js, bs)
     return Rollout(t=t, joint_states=js.numpy(), beam_states=bs.numpy(), points=pts.numpy() + f.origin,
                    point_nodes=f.point_nodes, origin=f.origin, features=f)

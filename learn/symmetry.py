@@ -60,3 +60,16 @@ def rotation_angles(n: int, rng: np.random.Generator | None = None) -> np.ndarra
     """n angles evenly spread over a full turn, the first one 0 unless `rng` shifts them all at random."""
     offset = 0.0 if rng is None else rng.uniform(0.0, 2.0 * np.pi / max(n, 1))
     return offset + 2.0 * np.pi * np.arange(n) / max(n, 1)
+
+
+def term_rotation(term: Term, R: np.ndarray) -> np.ndarray:
+    """[size, size] matrix M with rotate_term(x, term, R) = x @ M (the rotation is linear in the features)."""
+    return rotate_term(np.eye(term.size), term, R)
+
+
+def state_rotation(block, R: np.ndarray) -> np.ndarray:
+    """[S, S] matrix rotating a block's state (geometry | stress) as x @ M."""
+    M = np.zeros((block.state_size, block.state_size))
+    for sl, term in ((block.geometry_slice, block.geometry), (block.stress_slice, block.stress)):
+        M[sl, sl] = term_rotation(term, R)
+    return M

@@ -16,7 +16,7 @@ from learn import checkpoint
 from learn.conditions import envelope
 from learn.dataset import GraphSet, augment, episode_paths, extend_split, load_features, split_names
 from learn.metrics import multistep_loss, rollout_errors
-from learn.model import Simulator, term_retention
+from learn.model import Simulator, rollout_rotations_checked, term_retention
 from learn.rollout import input_floor
 
 log = logging.getLogger(__name__)
@@ -29,7 +29,8 @@ def model_args(cfg_model: DictConfig) -> dict:
             "bc_position": str(cfg_model.get("bc_position", "reference")),
             "layer_norm": bool(cfg_model.get("layer_norm", False)), "n_blocks": int(cfg_model.get("n_blocks", 2)),
             "pin_fixed_joint": bool(cfg_model.get("pin_fixed_joint", False)),
-            "frame": str(cfg_model.get("frame", "global")), "update": str(cfg_model.get("update", "additive"))}
+            "frame": str(cfg_model.get("frame", "global")), "update": str(cfg_model.get("update", "additive")),
+            "rollout_rotations": rollout_rotations_checked(cfg_model.get("rollout_rotations", 1), "model.rollout_rotations")}
 
 
 def retention_of(cfg: DictConfig):

@@ -186,3 +186,41 @@ def test_a_stopped_rollout_gradient_trains_each_step_from_the_state_the_model_re
     g_stop = grads(stop)
     assert torch.allclose(g_stop, grads(total / h), atol=1e-6)
     assert not torch.allclose(grads(through), g_stop, atol=1e-6)
+
+
+@pytest.mark.parametrize("update", ["additive", "kinematic"])
+def test_rotation_averaged_answer_is_equivariant_and_keeps_the_design(features, update):
+    """answer_unroll with n rotations: a design rotated by one of the group's angles gets the rotated answer
+    (exactly, unlike the network alone); frame 0 is the design itself; n = 1 is the network alone."""
+    from dataclasses import replace
+
+    from learn.model import rollout_rotations_checked
+    from learn.rollout import answer_unroll, rollout, unroll
+    from learn.symmetry import rotation_z
+    f = features[0]
+    data = GraphSet.build(features[:4])
+    model = Simulator.fit({"core": "double_gn", "latent": 8, "widths": [16, 8], "pin_fixed_joint": True,
+                           "update": update}, data.joint_state, data.beam_state, data.static).eval()
+    torch.manual_seed(0)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(0.3 * torch.randn_like(p))  # a far-from-equivariant network
+    R = rotation_z(np.pi / 2)
+    net = [rollout(model, g, steps=4) for g in (f, f.rotated(R))]
+    gap = lambda r: np.abs(r[1].local_points - r[0].local_points @ R.T).max() / np.abs(r[0].local_points).max()  # noqa: E731
+    net_gap = gap(net)
+    model.answer_with(4)
+    sym = [rollout(model, g, steps=4) for g in (f, f.rotated(R))]
+    assert gap(sym) < 1e-5 < 1e-2 < net_gap  # relative to the largest coordinate (float32; an untrained net)
+    np.testing.assert_allclose(sym[0].joint_states[0], f.joint_state[0], atol=1e-4)
+    np.testing.assert_allclose(sym[0].beam_states[0], f.beam_state[0], atol=1e-4)
+    want = replace(f, joint_state=sym[0].joint_states, beam_state=sym[0].beam_states).rotated(R)
+    np.testing.assert_allclose(sym[1].joint_states, want.joint_state, atol=1e-5 * np.abs(want.joint_state).max())
+    one = GraphSet.build([f])
+    with torch.no_grad():
+        a = answer_unroll(model.answer_with(1), one.joint_state[0], one.beam_state[0], one.static, one.t)
+        b = unroll(model, one.joint_state[0], one.beam_state[0], one.static, one.t)
+    assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+    for bad in (0, 2.5, "4", 65):
+        with pytest.raises(ValueError, match="rollout_rotations"):
+            rollout_rotations_checked(bad, "rollout_rotations")
