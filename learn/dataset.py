@@ -66,9 +66,11 @@ def extend_split(split: dict[str, list[str]], features: list[EpisodeFeatures]) -
     return out
 
 
-def augment(features: list[EpisodeFeatures], rotations: int, seed: int) -> list[EpisodeFeatures]:
-    """Each episode rotated about z (through the fixed joint) by `rotations` angles spread over a full turn,
-    with a random offset per episode; rotations <= 1 keeps the episodes as they are."""
+def augment(features: list[EpisodeFeatures], rotations: int, seed: int, mirror: bool = False) -> list[EpisodeFeatures]:
+    """Each episode (and, with mirror, its mirror image: EpisodeFeatures.mirrored) rotated about z (through the
+    fixed joint) by `rotations` angles spread over a full turn, with a random offset per episode; rotations <= 1
+    keeps them as they are."""
+    features = [g for f in features for g in ((f, f.mirrored()) if mirror else (f,))]
     if rotations <= 1:
         return list(features)
     rng = np.random.default_rng(seed)

@@ -96,7 +96,7 @@ def split_paths(split: str, stored: dict[str, list[str]], data_dir: Path, source
 def evaluate(cfg: DictConfig) -> dict:
     torch.set_num_threads(int(cfg.threads))
     ckpt = checkpoint.load(cfg.checkpoint)
-    model = checkpoint.model_from(ckpt).answer_with(cfg.rollout_rotations)
+    model = checkpoint.model_from(ckpt).answer_with(cfg.rollout_rotations, cfg.rollout_mirror)
     data_dir = Path(cfg.data_dir or ckpt["config"]["data_dir"])
     paths = split_paths(cfg.split, ckpt["split"], data_dir, cfg.checkpoint)
     if not paths:

@@ -111,6 +111,29 @@ class EpisodeFeatures:
             conditions=self.conditions)
 
 
+    def mirrored(self) -> "EpisodeFeatures":
+        """The mirror image (learn.symmetry.MIRROR: x <-> y through the fixed joint), labelled as the factory labels
+        the mirrored design (joint corners se <-> nw, beam left <-> right). Physically exact for the FEA (material,
+        residual stress and gravity are mirror-symmetric; checked against a solved mirrored design): every field
+        equals the FEA's of the mirrored design except the beam width vectors of deformed frames, which differ by
+        the cross-section's asymmetry about its centre node (<= 0.3 mm at 185 mm, tests/test_learn_symmetry.py)."""
+        from learn.symmetry import MIRROR, mirror_order, state_mirror, term_mirror
+
+        state = lambda x, block: (x.astype(np.float64) @ state_mirror(block)).astype(x.dtype)  # noqa: E731
+        bc = lambda x, block: (x.astype(np.float64) @ term_mirror(block.bc)).astype(x.dtype)  # noqa: E731
+        J, B = self.incidence.n_joints, self.incidence.n_beams
+        jo, bo = mirror_order([p[0] for p in JOINT_POINTS]), mirror_order([p[0] for p in BEAM_POINTS])
+        order = np.concatenate([(np.arange(J)[:, None] * len(jo) + jo).ravel(),
+                                J * len(jo) + (np.arange(B)[:, None] * len(bo) + bo).ravel()])
+        return EpisodeFeatures(
+            name=self.name, family=self.family, design_size=self.design_size, fea_seconds=self.fea_seconds,
+            t=self.t, incidence=self.incidence,
+            joint_state=state(self.joint_state, JOINT), beam_state=state(self.beam_state, BEAM),
+            joint_bc=bc(self.joint_bc, JOINT), beam_bc=bc(self.beam_bc, BEAM), origin=MIRROR @ self.origin,
+            point_nodes=self.point_nodes[order], fea_points=(self.fea_points @ MIRROR.T)[:, order].astype(np.float32),
+            conditions=self.conditions)
+
+
 def rebuild_all_points(joint_state, beam_state):
     """States [..., J, Dj] and [..., B, Db] -> every rebuilt point [..., P, 3] in point_nodes order."""
     jp = rebuild_points(joint_state[..., JOINT.geometry_slice], JOINT.geometry, JOINT_POINTS)

@@ -310,10 +310,19 @@ class Simulator(nn.Module):
         """Rotations about z a rollout is averaged over (learn.rollout.answer_unroll); 1: the network alone."""
         return int(self.args.get("rollout_rotations", 1))
 
-    def answer_with(self, rollout_rotations) -> "Simulator":
-        """Override the stored rollout_rotations (None keeps it); returns self."""
+    @property
+    def rollout_mirror(self) -> bool:
+        """Whether a rollout is also averaged over the mirror image (learn.rollout.answer_unroll)."""
+        return bool(self.args.get("rollout_mirror", False))
+
+    def answer_with(self, rollout_rotations=None, rollout_mirror=None) -> "Simulator":
+        """Override the stored rollout_rotations / rollout_mirror (None keeps them); returns self."""
         if rollout_rotations is not None:
             self.args["rollout_rotations"] = rollout_rotations_checked(rollout_rotations, "rollout_rotations")
+        if rollout_mirror is not None:
+            if not isinstance(rollout_mirror, bool):
+                raise ValueError(f"rollout_mirror={rollout_mirror!r}: must be true or false")
+            self.args["rollout_mirror"] = rollout_mirror
         return self
 
     @property

@@ -88,7 +88,7 @@ def predict(cfg: DictConfig) -> dict:
     if steps < 1:
         raise ValueError(f"steps={steps}: must be >= 1 (the training episodes have 10)")
     ckpt = checkpoint.load(cfg.checkpoint)
-    model = checkpoint.model_from(ckpt).answer_with(cfg.rollout_rotations)
+    model = checkpoint.model_from(ckpt).answer_with(cfg.rollout_rotations, cfg.rollout_mirror)
     episode = Path(cfg.episode)
     f = extract(read_episode(episode), name=episode.name)
     start = time.perf_counter()

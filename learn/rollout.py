@@ -10,7 +10,7 @@ import torch
 from learn.features import EpisodeFeatures, extract, rebuild_all_points
 from learn.graph import BEAM, JOINT, GraphIndex
 from learn.model import Simulator, Static, static_from
-from learn.symmetry import rotation_angles, rotation_z, state_rotation, term_rotation
+from learn.symmetry import rotation_angles, rotation_z, state_mirror, state_rotation, term_mirror, term_rotation
 
 
 def unroll(model: Simulator, joint_state: torch.Tensor, beam_state: torch.Tensor, static: Static,
@@ -24,33 +24,39 @@ def unroll(model: Simulator, joint_state: torch.Tensor, beam_state: torch.Tensor
     return torch.stack(joints), torch.stack(beams)
 
 
-def _rotations(block, n: int, dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Rotations about z by n angles evenly spread over a turn (the first 0) as state matrices [n, S, S] (x @ M),
-    their inverses, and the bc matrices [n, D, D]."""
-    Rs = [rotation_z(a) for a in rotation_angles(n)]
-    as_t = lambda ms: torch.as_tensor(np.stack(ms), dtype=dtype)  # noqa: E731
-    return (as_t([state_rotation(block, R) for R in Rs]), as_t([state_rotation(block, R.T) for R in Rs]),
-            as_t([term_rotation(block.bc, R) for R in Rs]))
+def _group(block, n: int, mirror: bool, dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The n rotations about z (evenly spread over a turn, the first 0), and with `mirror` each also after the
+    mirror, as state matrices [g, S, S] (x @ A), their inverses, and the bc matrices [g, D, D]."""
+    mirrors = (False, True) if mirror else (False,)
+    elements = [(m, rotation_z(a)) for m in mirrors for a in rotation_angles(n)]
+    flip = lambda m, M, size: M if m else np.eye(size)  # noqa: E731
+    S, D = block.state_size, block.bc.size
+    forward = [flip(m, state_mirror(block), S) @ state_rotation(block, R) for m, R in elements]
+    inverse = [state_rotation(block, R.T) @ flip(m, state_mirror(block), S) for m, R in elements]
+    bc = [flip(m, term_mirror(block.bc), D) @ term_rotation(block.bc, R) for m, R in elements]
+    return tuple(torch.as_tensor(np.stack(x), dtype=dtype) for x in (forward, inverse, bc))
 
 
 def answer_unroll(model: Simulator, joint_state: torch.Tensor, beam_state: torch.Tensor, static: Static,
                   t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """unroll as the trained simulator answers: with model.rollout_rotations = n > 1, the design is rolled out in n
-    frames rotated about z through the fixed joint (the origin of the features; one batch), every copy rotated
-    back and the states averaged. The average over the rotation group makes the answer exactly equivariant to
-    those n rotations, which the network alone is only approximately (it learned rotations from augmentation);
-    training and its validation use the network alone (unroll)."""
-    n = model.rollout_rotations
-    if n <= 1:
+    """unroll as the trained simulator answers: the design is rolled out in g frames at once (one batch) -- rotated
+    about z through the fixed joint (the features' origin) by model.rollout_rotations angles, and also mirrored
+    with model.rollout_mirror (EpisodeFeatures.mirrored) -- every copy mapped back and the states averaged. The
+    group average makes the answer exactly equivariant to those rotations (and the mirror), which the network
+    alone is only approximately (it learned them from augmentation, or not at all); training and its validation
+    use the network alone (unroll)."""
+    n, mirror = model.rollout_rotations, model.rollout_mirror
+    if n <= 1 and not mirror:
         return unroll(model, joint_state, beam_state, static, t)
-    Mj, Mj_back, Mjbc = _rotations(JOINT, n, joint_state.dtype)
-    Mb, Mb_back, Mbbc = _rotations(BEAM, n, beam_state.dtype)
-    rot = lambda x, M: torch.einsum("...nd,kde->k...ne", x, M)  # noqa: E731  [..., N, D] -> [k, ..., N, D]
-    copies = Static(rot(static.joint_bc, Mjbc), rot(static.beam_bc, Mbbc), static.index,
-                    static.kinematic_tree() if model.kinematic else None)  # one tree: rotations keep the topology
-    js, bs = unroll(model, rot(joint_state, Mj), rot(beam_state, Mb), copies, t)  # [F, k, ..., N, S]
-    back = lambda x, M: torch.einsum("fk...nd,kde->f...ne", x, M) / n  # noqa: E731
-    return back(js, Mj_back), back(bs, Mb_back)
+    Aj, Aj_back, Ajbc = _group(JOINT, n, mirror, joint_state.dtype)
+    Ab, Ab_back, Abbc = _group(BEAM, n, mirror, beam_state.dtype)
+    g = Aj.shape[0]
+    to = lambda x, A: torch.einsum("...nd,kde->k...ne", x, A)  # noqa: E731  [..., N, D] -> [g, ..., N, D]
+    copies = Static(to(static.joint_bc, Ajbc), to(static.beam_bc, Abbc), static.index,
+                    static.kinematic_tree() if model.kinematic else None)  # one tree: the copies share the topology
+    js, bs = unroll(model, to(joint_state, Aj), to(beam_state, Ab), copies, t)  # [F, g, ..., N, S]
+    back = lambda x, A: torch.einsum("fk...nd,kde->f...ne", x, A) / g  # noqa: E731
+    return back(js, Aj_back), back(bs, Ab_back)
 
 
 class _Unroll(torch.nn.Module):

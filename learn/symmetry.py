@@ -73,3 +73,45 @@ def state_rotation(block, R: np.ndarray) -> np.ndarray:
     for sl, term in ((block.geometry_slice, block.geometry), (block.stress_slice, block.stress)):
         M[sl, sl] = term_rotation(term, R)
     return M
+
+
+MIRROR = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # reflection x <-> y through the origin
+# The mirrored design is labelled like a sampled one: its lattice indices (i, j) swap, so every beam still runs
+# towards +i or +j and the joint axes stay right-handed (i: W -> E side, j: S -> N side). What that relabels:
+# joint corners (i, j) -> (j, i), i.e. se <-> nw (sw, ne stay); a beam's left and right (its j axis points to the
+# left of a -> b), with the width vector (centre -> left edge) minus the reflected one. Field-name parts, both ways.
+MIRROR_SWAPS = (("se", "nw"), ("left", "right"))
+MIRROR_NEGATED = ("_width",)
+
+
+def _mirror_name(name: str) -> str:
+    for a, b in MIRROR_SWAPS:
+        for x, y in ((a, b), (b, a)):
+            if x in name.split("_"):
+                return "_".join(y if part == x else part for part in name.split("_"))
+    return name
+
+
+def term_mirror(term: Term) -> np.ndarray:
+    """[size, size] matrix M with mirror(x) = x @ M: every field reflected (MIRROR) and moved to the field it
+    becomes in the mirrored design (MIRROR_SWAPS), width vectors negated; an involution (M @ M = I)."""
+    reflected = rotate_term(np.eye(term.size), term, MIRROR)
+    M = np.zeros_like(reflected)
+    for name in term.names():
+        src, dst = term.slice(name), term.slice(_mirror_name(name))
+        sign = -1.0 if any(name.endswith(s) for s in MIRROR_NEGATED) else 1.0
+        M[:, dst] = sign * reflected[:, src]
+    return M
+
+
+def state_mirror(block) -> np.ndarray:
+    M = np.zeros((block.state_size, block.state_size))
+    for sl, term in ((block.geometry_slice, block.geometry), (block.stress_slice, block.stress)):
+        M[sl, sl] = term_mirror(term)
+    return M
+
+
+def mirror_order(names: list[str]) -> np.ndarray:
+    """[n] index: entry p of the mirrored list is entry order[p] of `names` (point or field names relabelled by
+    MIRROR_SWAPS)."""
+    return np.array([names.index(_mirror_name(n)) for n in names])

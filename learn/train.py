@@ -30,7 +30,9 @@ def model_args(cfg_model: DictConfig) -> dict:
             "layer_norm": bool(cfg_model.get("layer_norm", False)), "n_blocks": int(cfg_model.get("n_blocks", 2)),
             "pin_fixed_joint": bool(cfg_model.get("pin_fixed_joint", False)),
             "frame": str(cfg_model.get("frame", "global")), "update": str(cfg_model.get("update", "additive")),
-            "rollout_rotations": rollout_rotations_checked(cfg_model.get("rollout_rotations", 1), "model.rollout_rotations")}
+            "rollout_rotations": rollout_rotations_checked(cfg_model.get("rollout_rotations", 1),
+                                                           "model.rollout_rotations"),
+            "rollout_mirror": bool(cfg_model.get("rollout_mirror", False))}
 
 
 def retention_of(cfg: DictConfig):
@@ -103,7 +105,8 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
         raise FileNotFoundError(f"episodes of the checkpoint's split are missing from {cfg.data_dir}: {missing[:5]}")
     log.info("episodes: %s", {s: len(v) for s, v in split.items()})
     train_envelope = envelope([by_name[n].conditions for n in split["train"]])  # physics the graphs do not carry
-    train_set = GraphSet.build(augment([by_name[n] for n in split["train"]], cfg.rotations, cfg.seed))
+    train_set = GraphSet.build(augment([by_name[n] for n in split["train"]], cfg.rotations, cfg.seed,
+                                         bool(cfg.mirror)))
     val_set = GraphSet.build([by_name[n] for n in split["val"] or split["train"]])
 
     torch.manual_seed(cfg.seed)

@@ -1,0 +1,112 @@
+"""The mirror (learn.symmetry.MIRROR, EpisodeFeatures.mirrored) against the FEA of a mirrored design, and the
+group-averaged answers (learn.rollout.answer_unroll) it enables."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from data_schema.episode import read_episode
+from data_schema.testing import synthetic_episode
+from learn.dataset import GraphSet, augment
+from learn.features import extract, rebuild_all_points
+from learn.graph import BEAM
+from learn.model import Simulator
+from learn.rollout import rollout
+
+ROOT = Path(__file__).resolve().parent.parent
+KINDS = ("up", "down", "passive")
+
+
+def design_3x3(mirrored: bool) -> dict:
+    """A jittered 3x3 design with mixed actuators; mirrored: x <-> y and lattice (i, j) -> (j, i)."""
+    rng = np.random.default_rng(7)
+    joints, index = [], {}
+    for j in range(3):
+        for i in range(3):
+            index[i, j] = len(joints)
+            x, y = 75.0 * i + rng.uniform(-8, 8), 60.0 * j + rng.uniform(-8, 8)
+            joints.append({"ij": [j, i] if mirrored else [i, j], "xy": [y, x] if mirrored else [x, y]})
+    beams = [[index[i, j], index[i + 1, j]] for j in range(3) for i in range(2)] + \
+            [[index[i, j], index[i, j + 1]] for j in range(2) for i in range(3)]
+    beams = [[a, b, KINDS[n % 3]] for n, (a, b) in enumerate(beams)]
+    return {"format": "morphsim.design/1", "joints": joints, "beams": beams, "fixed_joint": index[1, 1],
+            "beam_width": 7.2, "thickness": 4.0, "meta": {"family": "random"}}
+
+
+def solved(tmp_path: Path, mirrored: bool):
+    design, out = tmp_path / f"d{int(mirrored)}.json", tmp_path / f"e{int(mirrored)}.h5"
+    design.write_text(json.dumps(design_3x3(mirrored)))
+    r = subprocess.run([sys.executable, "-m", "fea_factory.solve", f"design={design}", f"out={out}", "mesh=coarse"],
+                       cwd=ROOT, stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stdout[-1000:] + r.stderr[-2000:]
+    return extract(read_episode(out))
+
+
+def test_mirrored_features_are_the_fea_of_the_mirrored_design(tmp_path):
+    """Physics is mirror-symmetric (isotropic material and joint stress, beams printed along/across their axis,
+    gravity along z), so the FEA of the mirrored design equals the mirrored features, to round-off, except the beam
+    width vectors once the sections deform: the feature is centre -> left edge node, whose mirror is the right
+    edge node, and a deformed section is not symmetric about its centre node (< 0.5 % of the design size)."""
+    pytest.importorskip("dolfinx")
+    f, g = solved(tmp_path, False), solved(tmp_path, True)
+    m = f.mirrored()
+    assert g.incidence.n_beams == m.incidence.n_beams and (g.incidence.senders == m.incidence.senders).all()
+    tol = lambda x: 1e-5 * max(1.0, np.abs(x).max())  # noqa: E731  float32 features
+    np.testing.assert_allclose(m.joint_state, g.joint_state, atol=tol(g.joint_state))
+    np.testing.assert_allclose(m.joint_bc, g.joint_bc, atol=1e-4)
+    np.testing.assert_allclose(m.beam_bc, g.beam_bc, atol=1e-4)
+    widths = [BEAM.geometry.slice(f"{s}_width") for s in ("start", "middle", "end")]
+    other = np.ones(BEAM.state_size, bool)
+    for sl in widths:
+        other[sl] = False
+    np.testing.assert_allclose(m.beam_state[..., other], g.beam_state[..., other], atol=tol(g.beam_state))
+    np.testing.assert_allclose(m.beam_state[0], g.beam_state[0], atol=1e-4)  # flat: the widths too
+    width_gap = max(np.abs(m.beam_state[..., sl] - g.beam_state[..., sl]).max() for sl in widths)
+    assert width_gap < 0.005 * f.design_size
+    np.testing.assert_allclose(m.fea_points, g.fea_points, atol=0.005 * f.design_size)
+    # the plain reflection without relabelling is far off: the labels matter
+    swap_xy = [3 * k + c for k in range(BEAM.geometry.size // 3) for c in (1, 0, 2)]
+    naive = f.beam_state[..., BEAM.geometry_slice][..., swap_xy]
+    assert np.abs(naive - g.beam_state[..., BEAM.geometry_slice]).max() > 1.0
+
+
+def test_mirror_is_an_involution_and_keeps_points_and_shared_nodes():
+    f = extract(synthetic_episode(3, 3, 5, 3, 3, frames=3))
+    back = f.mirrored().mirrored()
+    for name in ("joint_state", "beam_state", "joint_bc", "beam_bc", "fea_points", "point_nodes", "origin"):
+        np.testing.assert_allclose(getattr(back, name), getattr(f, name), atol=1e-5, err_msg=name)
+    m = f.mirrored()  # the points its features rebuild are the mirrored FEA points (flat frame: exactly)
+    np.testing.assert_allclose(rebuild_all_points(m.joint_state[0].astype(float), m.beam_state[0].astype(float)),
+                               m.fea_points[0], atol=1e-4)
+    assert len(augment([f], rotations=3, seed=0, mirror=True)) == 6
+
+
+def test_mirror_averaged_answer_is_mirror_equivariant():
+    fs = [extract(synthetic_episode(3, 3, 5, 3, 3, 5, seed=s)) for s in range(3)]
+    data = GraphSet.build(fs)
+    model = Simulator.fit({"core": "double_gn", "latent": 8, "widths": [16, 8], "pin_fixed_joint": True},
+                          data.joint_state, data.beam_state, data.static).eval()
+    torch.manual_seed(0)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(0.3 * torch.randn_like(p))
+    f = fs[0]
+    scale = lambda r: np.abs(r.local_points).max()  # noqa: E731
+
+    def gap(a, b):  # the answer for the mirrored design vs the mirrored answer
+        want = replace(f, joint_state=a.joint_states, beam_state=a.beam_states).mirrored()
+        return np.abs(b.joint_states - want.joint_state).max() / np.abs(want.joint_state).max()
+    plain = gap(rollout(model, f, steps=4), rollout(model, f.mirrored(), steps=4))
+    model.answer_with(2, True)
+    a, b = rollout(model, f, steps=4), rollout(model, f.mirrored(), steps=4)
+    assert gap(a, b) < 1e-5 < 1e-2 < plain and scale(a) > 0
+    np.testing.assert_allclose(a.joint_states[0], f.joint_state[0], atol=1e-4)
+    with pytest.raises(ValueError, match="rollout_mirror"):
+        model.answer_with(None, "yes")
