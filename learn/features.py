@@ -113,10 +113,9 @@ class EpisodeFeatures:
 
     def mirrored(self) -> "EpisodeFeatures":
         """The mirror image (learn.symmetry.MIRROR: x <-> y through the fixed joint), labelled as the factory labels
-        the mirrored design (joint corners se <-> nw, beam left <-> right). Physically exact for the FEA (material,
-        residual stress and gravity are mirror-symmetric; checked against a solved mirrored design): every field
-        equals the FEA's of the mirrored design except the beam width vectors of deformed frames, which differ by
-        the cross-section's asymmetry about its centre node (<= 0.3 mm at 185 mm, tests/test_learn_symmetry.py)."""
+        the mirrored design (joint corners se <-> nw, beam left <-> right). Exact: material, residual stress and
+        gravity are mirror-symmetric, so every field equals the one extracted from the FEA of the mirrored design
+        (tests/test_learn_symmetry.py solves one)."""
         from learn.symmetry import MIRROR, mirror_order, state_mirror, term_mirror
 
         state = lambda x, block: (x.astype(np.float64) @ state_mirror(block)).astype(x.dtype)  # noqa: E731
@@ -235,8 +234,10 @@ def extract(ep, name: str = "") -> EpisodeFeatures:
     for s in SECTIONS:
         c = pos[:, beam_nodes[:, names.index(f"{s}_center")]]
         bg[..., BEAM.geometry.slice(f"{s}_center")] = c
-        bg[..., BEAM.geometry.slice(f"{s}_width")] = pos[:, beam_nodes[:, names.index(f"{s}_left")]] - c
-        bg[..., BEAM.geometry.slice(f"{s}_height")] = pos[:, beam_nodes[:, names.index(f"{s}_top")]] - c
+        side = lambda a, b: 0.5 * (pos[:, beam_nodes[:, names.index(f"{s}_{a}")]]  # noqa: E731
+                                   - pos[:, beam_nodes[:, names.index(f"{s}_{b}")]])
+        bg[..., BEAM.geometry.slice(f"{s}_width")] = side("left", "right")  # symmetric about the section: the
+        bg[..., BEAM.geometry.slice(f"{s}_height")] = side("top", "bottom")  # mirror maps it exactly (symmetry.py)
 
     stress = np.asarray(ep.stress)
     jc, jq = joint_stress_sites(ep)

@@ -76,8 +76,8 @@ JOINT_BC = Term("bc", (
 BEAM_GEOMETRY = Term("geometry", tuple(
     f for s in SECTIONS for f in (
         Field(f"{s}_center", "point"),
-        Field(f"{s}_width", "vector"),  # centre -> middle of the left edge (half width, across to the left)
-        Field(f"{s}_height", "vector"),  # centre -> middle of the top edge (half thickness, up)
+        Field(f"{s}_width", "vector"),  # half of (right edge middle -> left edge middle): half width, to the left
+        Field(f"{s}_height", "vector"),  # half of (bottom edge middle -> top edge middle): half thickness, up
     )))
 BEAM_STRESS = Term("stress", tuple(Field(f"{s}_{c}", "stress") for s in SECTIONS for c in SECTION_CORNERS))
 BEAM_BC = Term("bc", (

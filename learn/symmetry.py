@@ -1,4 +1,4 @@
-"""Spatial symmetry: translate a design so its fixed joint sits at the origin, rotate about z (points, vectors, stress)."""
+"""Spatial symmetry: the fixed joint at the origin; rotations about z and the mirror (points, vectors, stress)."""
 from __future__ import annotations
 
 import numpy as np
@@ -79,7 +79,7 @@ MIRROR = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # reflec
 # The mirrored design is labelled like a sampled one: its lattice indices (i, j) swap, so every beam still runs
 # towards +i or +j and the joint axes stay right-handed (i: W -> E side, j: S -> N side). What that relabels:
 # joint corners (i, j) -> (j, i), i.e. se <-> nw (sw, ne stay); a beam's left and right (its j axis points to the
-# left of a -> b), with the width vector (centre -> left edge) minus the reflected one. Field-name parts, both ways.
+# left of a -> b), with the width vector (half of right edge -> left edge) minus the reflected one. Name parts, both ways.
 MIRROR_SWAPS = (("se", "nw"), ("left", "right"))
 MIRROR_NEGATED = ("_width",)
 
