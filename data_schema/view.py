@@ -94,7 +94,7 @@ def view_path(episode: Path, directory: Path | None = None) -> Path:
 
 
 def write_episode_view(episode: str | Path, out: str | Path | None = None) -> Path:
-    """The XDMF view of one episode file (see the module doc); out defaults to the episode's path with .xdmf."""
+    """The XDMF view of one episode file (see the module doc); out defaults to <episode>.view.xdmf beside it."""
     episode = Path(episode)
     ep = read_episode(episode)
     out = Path(out) if out is not None else view_path(episode)

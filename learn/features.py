@@ -110,7 +110,6 @@ class EpisodeFeatures:
             origin=self.origin, point_nodes=self.point_nodes, fea_points=rotate_vectors(self.fea_points, R),
             conditions=self.conditions)
 
-
     def mirrored(self) -> "EpisodeFeatures":
         """The mirror image (learn.symmetry.MIRROR: x <-> y through the fixed joint), labelled as the factory labels
         the mirrored design (joint corners se <-> nw, beam left <-> right). Exact: material, residual stress and

@@ -79,7 +79,7 @@ MIRROR = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # reflec
 # The mirrored design is labelled like a sampled one: its lattice indices (i, j) swap, so every beam still runs
 # towards +i or +j and the joint axes stay right-handed (i: W -> E side, j: S -> N side). What that relabels:
 # joint corners (i, j) -> (j, i), i.e. se <-> nw (sw, ne stay); a beam's left and right (its j axis points to the
-# left of a -> b), with the width vector (half of right edge -> left edge) minus the reflected one. Name parts, both ways.
+# left of a -> b), the width vector (half of right edge -> left edge) minus the reflected one. Name parts, both ways.
 MIRROR_SWAPS = (("se", "nw"), ("left", "right"))
 MIRROR_NEGATED = ("_width",)
 
