@@ -17,16 +17,7 @@ from fea_factory.design import Design, DesignLimits, validate
 from fea_factory.mesh import MeshPreset, build_keyed_mesh
 from fea_factory.scene import Scene
 from fea_factory.solve import episode_from_solution
-from fea_factory.solver import Frames
-
-
-def stress_quadrature(degree: int) -> tuple[np.ndarray, np.ndarray]:
-    """Points [Q, 3] in [0, 1]^3 and weights [Q] of the hex rule the solver samples stress at (basix, like the
-    solver's outputs)."""
-    import basix
-
-    qp, qw = basix.make_quadrature(basix.CellType.hexahedron, int(degree))
-    return np.asarray(qp), np.asarray(qw)
+from fea_factory.solver import Frames, stress_quadrature
 
 
 def initial_episode(design: Design, cfg, config_yaml: str):

@@ -93,6 +93,14 @@ class Frames:
     quad_weights: np.ndarray | None = None
 
 
+def stress_quadrature(degree: int) -> tuple[np.ndarray, np.ndarray]:
+    """Points [Q, 3] in [0, 1]^3 and weights [Q] of the hex rule the stress is sampled at (episode quad_points)."""
+    import basix
+
+    qp, qw = basix.make_quadrature(basix.CellType.hexahedron, int(degree))
+    return np.asarray(qp), np.asarray(qw)
+
+
 class SolveFailure(RuntimeError):
     """A diverged episode: reported, never saved as data."""
 
@@ -187,7 +195,6 @@ class GridSolver:
         self.geo_dofs = geo
 
     def _build_forms(self, S0_cells: np.ndarray, body_force: np.ndarray) -> None:
-        import basix
         import ufl
         from dolfinx import fem
         from petsc4py import PETSc
@@ -217,8 +224,7 @@ class GridSolver:
         self._stabilized_forms = None
         self.bcs = [self._fixed_face_bc() if self.clamp == "top_face" else self._fixed_block_bc()]
         # outputs: Cauchy stress at Gauss points, node values through a Q1 space
-        qp, qw = basix.make_quadrature(basix.CellType.hexahedron, s.stress_quadrature_degree)
-        self.quad_points, self.quad_weights = np.asarray(qp), np.asarray(qw)
+        self.quad_points, self.quad_weights = stress_quadrature(s.stress_quadrature_degree)
         sig = cauchy_stress(self.material, self.u, self.S0, self.t, self.scene)
         self.stress_expr = fem.Expression(ufl.as_vector([sig[i, j] for i, j in VOIGT]), self.quad_points)
         self.V1 = fem.VectorFunctionSpace(msh, ("Lagrange", 1))

@@ -12,6 +12,15 @@ import numpy as np  # noqa: E402
 from learn.rollout import Rollout  # noqa: E402
 
 
+def equal_axes(ax, points: np.ndarray) -> None:
+    """A 3D axis cube around points [..., 3] (mm), so shapes are not stretched."""
+    pts = points.reshape(-1, 3)
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    c, half = 0.5 * (lo + hi), 0.5 * (hi - lo).max()
+    ax.set(xlim=(c[0] - half, c[0] + half), ylim=(c[1] - half, c[1] + half), zlim=(c[2] - half, c[2] + half),
+           xlabel="x mm", ylabel="y mm", zlabel="z mm")
+
+
 def plot_overlays(report: dict, rollouts: list[Rollout], path: Path) -> None:
     """Final frame of the best, median and worst design: FEA nodes (blue) and rebuilt predictions (red)."""
     order = np.argsort([d["max_rel_error"] for d in report["designs"]])
@@ -24,14 +33,7 @@ def plot_overlays(report: dict, rollouts: list[Rollout], path: Path) -> None:
         ax.scatter(*fea.T, s=3, c="tab:blue", label="FEA")
         ax.scatter(*pred.T, s=3, c="tab:red", label="learned")
         ax.set_title(f"{label}: {d['name']}\nmax error {100 * d['max_rel_error']:.2f}% of {d['design_size_mm']:.0f} mm")
-        ax.set_xlabel("x mm")
-        ax.set_ylabel("y mm")
-        ax.set_zlabel("z mm")
-        lo, hi = fea.min(axis=0), fea.max(axis=0)
-        c, half = 0.5 * (lo + hi), 0.5 * (hi - lo).max()
-        ax.set_xlim(c[0] - half, c[0] + half)
-        ax.set_ylim(c[1] - half, c[1] + half)
-        ax.set_zlim(c[2] - half, c[2] + half)
+        equal_axes(ax, fea)
         if n == 0:
             ax.legend(loc="upper left")
     fig.subplots_adjust(left=0.02, right=0.97, bottom=0.05, top=0.86, wspace=0.1)

@@ -28,6 +28,7 @@ from data_schema.episode import read_episode
 from data_schema.view import write_series
 from learn import checkpoint
 from learn.features import extract
+from learn.plots import equal_axes
 from learn.rollout import Rollout, rollout
 from learn.shapes import block_hexahedra
 from learn.validity import check
@@ -71,10 +72,7 @@ def plot_prediction(r: Rollout, title: str, path: Path) -> None:
     ax = fig.add_subplot(projection="3d")
     for pts, color, label in shapes:
         ax.add_collection3d(Line3DCollection(segments(pts), colors=color, linewidths=0.6, label=label))
-    lo, hi = r.points.reshape(-1, 3).min(axis=0), r.points.reshape(-1, 3).max(axis=0)
-    c, half = 0.5 * (lo + hi), 0.5 * (hi - lo).max()
-    ax.set(xlim=(c[0] - half, c[0] + half), ylim=(c[1] - half, c[1] + half), zlim=(c[2] - half, c[2] + half),
-           xlabel="x mm", ylabel="y mm", zlabel="z mm")
+    equal_axes(ax, r.points)
     ax.set_title("\n".join(textwrap.wrap(title, 70)), fontsize=9)
     ax.legend(loc="upper left")
     fig.tight_layout()

@@ -8,25 +8,27 @@ from __future__ import annotations
 
 import numpy as np
 
-from learn.features import BEAM_POINTS, JOINT_POINTS
+from learn.features import BEAM_POINTS, HEX8_REF, JOINT_POINTS
 from learn.graph import JOINT_CORNER_IJ, JOINT_CORNERS, SECTION_CORNER_JK, SECTION_CORNERS, SECTIONS
 
 _JOINT_NAMES = [p[0] for p in JOINT_POINTS]
 _BEAM_NAMES = [p[0] for p in BEAM_POINTS]
-_QUAD_IJ = ((0, 0), (1, 0), (1, 1), (0, 1))  # hex8 bottom quad in reference coordinates (the top repeats it)
+_VERTICES = HEX8_REF.astype(int)  # [8, (i, j, k)] hex8 vertex order, reference coordinates in {0, 1}
 
 
 def _joint_hex() -> list[int]:
-    """Indices into one joint's JOINT_POINTS of its box: the corner points at the bottom and top faces."""
+    """Indices into one joint's JOINT_POINTS of its box: vertex (i, j, k) is the corner (i, j) at the bottom
+    (k = 0) or top (k = 1) face."""
     corner = {ij: c for c, ij in zip(JOINT_CORNERS, JOINT_CORNER_IJ)}
-    return [_JOINT_NAMES.index(f"{corner[ij]}_{h}") for h in ("bottom", "top") for ij in _QUAD_IJ]
+    return [_JOINT_NAMES.index(f"{corner[(i, j)]}_{('bottom', 'top')[k]}") for i, j, k in _VERTICES]
 
 
 def _beam_hexes() -> list[list[int]]:
-    """Indices into one beam's BEAM_POINTS of its two hexahedra (start-middle, middle-end): i along the beam,
-    j across to the left, k up; section corner (j, k) names from SECTION_CORNER_JK."""
+    """Indices into one beam's BEAM_POINTS of its two hexahedra (start-middle, middle-end): vertex (i, j, k) is
+    the section corner (j, k) (SECTION_CORNER_JK: j across to the left, k up) of the first (i = 0) or second
+    section."""
     corner = {jk: c for c, jk in zip(SECTION_CORNERS, SECTION_CORNER_JK)}
-    return [[_BEAM_NAMES.index(f"{(a, b)[i]}_{corner[(j, k)]}") for k in (0, 1) for i, j in _QUAD_IJ]
+    return [[_BEAM_NAMES.index(f"{(a, b)[i]}_{corner[(j, k)]}") for i, j, k in _VERTICES]
             for a, b in zip(SECTIONS[:-1], SECTIONS[1:])]
 
 

@@ -67,12 +67,18 @@ def term_rotation(term: Term, R: np.ndarray) -> np.ndarray:
     return rotate_term(np.eye(term.size), term, R)
 
 
-def state_rotation(block, R: np.ndarray) -> np.ndarray:
-    """[S, S] matrix rotating a block's state (geometry | stress) as x @ M."""
+def state_matrix(block, term_matrix) -> np.ndarray:
+    """[S, S] block-diagonal matrix acting on a block's state (geometry | stress) as x @ M, from a per-term
+    matrix function term_matrix(term)."""
     M = np.zeros((block.state_size, block.state_size))
     for sl, term in ((block.geometry_slice, block.geometry), (block.stress_slice, block.stress)):
-        M[sl, sl] = term_rotation(term, R)
+        M[sl, sl] = term_matrix(term)
     return M
+
+
+def state_rotation(block, R: np.ndarray) -> np.ndarray:
+    """[S, S] matrix rotating a block's state (geometry | stress) as x @ M."""
+    return state_matrix(block, lambda term: term_rotation(term, R))
 
 
 MIRROR = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # reflection x <-> y through the origin
@@ -105,10 +111,8 @@ def term_mirror(term: Term) -> np.ndarray:
 
 
 def state_mirror(block) -> np.ndarray:
-    M = np.zeros((block.state_size, block.state_size))
-    for sl, term in ((block.geometry_slice, block.geometry), (block.stress_slice, block.stress)):
-        M[sl, sl] = term_mirror(term)
-    return M
+    """[S, S] matrix mirroring a block's state (geometry | stress) as x @ M."""
+    return state_matrix(block, term_mirror)
 
 
 def mirror_order(names: list[str]) -> np.ndarray:
