@@ -93,3 +93,17 @@ def test_predict_writes_view_verdict_and_error_like_the_rollout(trained, data_di
     with pytest.raises(ValueError, match="steps=0"):
         predict(cfg_for("predict", base + [f"episode={tmp_path / 'initial.h5'}", "steps=0",
                                            f"out_dir={tmp_path / 'bad'}"]))
+
+
+def test_bench_rollout_writes_a_row_per_setting_and_refuses_a_bad_one(trained, data_dir, tmp_path):  # noqa: F811
+    run_dir, _ = trained
+    base = [sys.executable, str(ROOT / "scripts" / "bench_rollout.py"), "--checkpoint", str(run_dir / "best.pt"),
+            "--data-dir", str(data_dir), "--designs", "1", "--repeats", "1", "--out", str(tmp_path / "b")]
+    r = subprocess.run(base + ["--settings", "1:false,2:true"], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    rows = (tmp_path / "b" / "rollout.csv").read_text().splitlines()
+    assert rows[0].startswith("rotations,mirror,copies,ms_per_design") and len(rows) == 3
+    assert rows[2].startswith("2,True,4,") and (tmp_path / "b" / "rollout.png").stat().st_size > 0
+    assert "Machine:" in (tmp_path / "b" / "rollout.md").read_text()
+    bad = subprocess.run(base + ["--settings", "0:false"], capture_output=True, text=True, timeout=600)
+    assert bad.returncode != 0 and "--settings" in bad.stderr

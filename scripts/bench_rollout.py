@@ -1,0 +1,108 @@
+"""Learned rollout wall time vs symmetry copies: `make bench-rollout CKPT=...` -> reports/bench_rollout/.
+
+Per setting (rotations x mirror, learn.rollout.answer_unroll): the TorchScript-compiled rollout of one design from
+frame 0 to the rebuilt points of every frame, on one thread; the median over designs (the checkpoint's test split)
+of the median of --repeats calls (learn.evaluate.median_seconds). Writes rollout.csv, rollout.md (machine, load,
+command) and rollout.png (ms vs copies, the 5 ms target). Run it on an idle machine.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+import torch  # noqa: E402
+
+from learn import checkpoint  # noqa: E402
+from learn.dataset import load_features  # noqa: E402
+from learn.evaluate import median_seconds  # noqa: E402
+from learn.rollout import compile_rollout, graph_inputs  # noqa: E402
+from tradeoff import machine  # noqa: E402  (scripts/tradeoff.py)
+
+TARGET_MS = 5.0  # ../shared/MISSION.md: <= 5 ms per design on one CPU core
+
+
+def settings(text: str) -> list[tuple[int, bool]]:
+    """'1:false,4:true' -> [(1, False), (4, True)]."""
+    out = []
+    for item in text.split(","):
+        n, _, m = item.partition(":")
+        if m not in ("true", "false") or not n.isdigit() or int(n) < 1:
+            raise SystemExit(f"--settings: {item!r} must be <rotations >= 1>:<true|false>")
+        out.append((int(n), m == "true"))
+    return out
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--checkpoint", default="runs/train/best.pt")
+    p.add_argument("--data-dir", help="default: the checkpoint's data_dir")
+    p.add_argument("--designs", type=int, default=8, help="test designs timed (the first by name)")
+    p.add_argument("--repeats", type=int, default=30)
+    p.add_argument("--settings", default="1:false,2:false,4:false,1:true,2:true,4:true,8:true")
+    p.add_argument("--out", default="reports/bench_rollout")
+    a = p.parse_args()
+    torch.set_num_threads(1)
+    ckpt = checkpoint.load(a.checkpoint)
+    data_dir = Path(a.data_dir or ckpt["config"]["data_dir"])
+    names = sorted(ckpt["split"]["test"])[: a.designs]
+    if not names:
+        raise SystemExit(f"{a.checkpoint} has no test split to time")
+    features = load_features([data_dir / n for n in names])
+    load_before = "/".join(f"{x:.2f}" for x in os.getloadavg())
+    rows = []
+    for n, mirror in settings(a.settings):
+        model = checkpoint.model_from(ckpt).answer_with(n, mirror)
+        compiled = compile_rollout(model, features[0])
+        ms = [1e3 * median_seconds(lambda f=f: compiled(*graph_inputs(f)), a.repeats) for f in features]
+        rows.append({"rotations": n, "mirror": mirror, "copies": n * (2 if mirror else 1),
+                     "ms_per_design": float(np.median(ms)), "ms_min": float(np.min(ms)), "ms_max": float(np.max(ms))})
+        print(f"rotations {n} mirror {mirror}: {rows[-1]['ms_per_design']:.2f} ms/design", flush=True)
+    load_after = "/".join(f"{x:.2f}" for x in os.getloadavg())
+
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / "rollout.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    lines = [f"# Learned rollout time vs symmetry copies ({a.checkpoint})", "",
+             f"Machine: {machine()}; 1 torch thread; load average before/after {load_before} / {load_after}.",
+             f"Command: `{' '.join([Path(sys.executable).name, *sys.argv])}`; {len(features)} test designs, "
+             f"median of {a.repeats} calls each, then the median over designs.", "",
+             "| rotations | mirror | copies | ms per design (median) | min / max over designs |", "|---|---|---|---|---|"]
+    lines += [f"| {r['rotations']} | {r['mirror']} | {r['copies']} | {r['ms_per_design']:.2f} | "
+              f"{r['ms_min']:.2f} / {r['ms_max']:.2f} |" for r in rows]
+    (out / "rollout.md").write_text("\n".join(lines) + "\n")
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for mirror, marker in ((False, "o"), (True, "s")):
+        sel = [r for r in rows if r["mirror"] == mirror]
+        if sel:
+            ax.plot([r["copies"] for r in sel], [r["ms_per_design"] for r in sel], marker + "-",
+                    label="rotations + mirror" if mirror else "rotations")
+    ax.axhline(TARGET_MS, color="k", ls="--", lw=0.8, label=f"target {TARGET_MS:g} ms")
+    ax.set(xlabel="copies averaged per answer", ylabel="rollout ms per design (1 thread)",
+           title="learned rollout cost of symmetry averaging")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(out / "rollout.png", dpi=110)
+    plt.close(fig)
+    print(out / "rollout.md")
+
+
+if __name__ == "__main__":
+    main()
