@@ -4,18 +4,17 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import secrets
 from pathlib import Path
 from typing import Any, Sequence
 
 import h5py
 import numpy as np
 
+from data_schema.atomic import replacing
 from data_schema.checks import EpisodeError, coerce, episode_problems
 from data_schema.fields import FIELDS, SCHEMA_VERSION, SCHEMA_VERSION_ATTR, Field
 
 EPISODE_SUFFIX = ".h5"
-TMP_SUFFIX = ".tmp"  # "<name>.h5.<random>.tmp": an unfinished write; safe to delete when no writer runs
 COMPRESSION = {"compression": "gzip", "compression_opts": 4, "shuffle": True}
 COMPRESS_MIN_BYTES = 4096  # smaller datasets are stored contiguous and uncompressed
 
@@ -111,32 +110,12 @@ def write_episode(path: str | os.PathLike, ep: Episode) -> Path:
     problems = episode_problems(ep)
     if problems:
         raise EpisodeError(path, *problems[0])
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f"{path.name}.{secrets.token_hex(4)}{TMP_SUFFIX}")
-    os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))  # unique; mode as the umask allows
-    try:
+    with replacing(path) as tmp:
         with h5py.File(tmp, "w") as h5:
             h5.attrs[SCHEMA_VERSION_ATTR] = SCHEMA_VERSION
             for f in FIELDS:
                 _create(h5.require_group(f.group), f, getattr(ep, f.name))
-        _fsync(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    try:
-        _fsync(path.parent)  # makes the rename durable
-    except OSError:
-        pass  # best effort: not every platform can open or fsync a directory
     return path
-
-
-def _fsync(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 # --------------------------------------------------------------------------------------------------- read

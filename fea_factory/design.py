@@ -11,6 +11,8 @@ from typing import Any
 
 import numpy as np
 
+from data_schema import atomic
+
 BEAM_KINDS = ("up", "down", "passive")
 DESIGN_FORMAT = "morphsim.design/1"
 
@@ -125,10 +127,7 @@ class Design:
         return cls.from_dict(json.loads(text))
 
     def save(self, path: str | Path) -> None:
-        path = Path(path)
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(self.to_json())
-        tmp.replace(path)
+        atomic.write_text(path, self.to_json())
 
     @classmethod
     def load(cls, path: str | Path) -> "Design":

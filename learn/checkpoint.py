@@ -7,6 +7,7 @@ from pathlib import Path
 
 import torch
 
+from data_schema import atomic
 from learn.model import Simulator
 
 FORMAT = "morphsim.learn/1"
@@ -14,12 +15,9 @@ FORMAT = "morphsim.learn/1"
 
 def save(path: str | Path, model: Simulator, **extra) -> Path:
     """state_dict (PCA and normalisers included) + model args + anything plain in `extra` (config, split, ...)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save({"format": FORMAT, "model_args": model.args, "state_dict": model.state_dict(), **extra}, tmp)
-    os.replace(tmp, path)
-    return path
+    with atomic.replacing(path) as tmp:
+        torch.save({"format": FORMAT, "model_args": model.args, "state_dict": model.state_dict(), **extra}, tmp)
+    return Path(path)
 
 
 class RunDirInUse(RuntimeError):

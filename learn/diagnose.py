@@ -21,6 +21,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from data_schema import atomic
 from learn import checkpoint
 from learn.dataset import GraphSet, load_features
 from learn.features import rebuild_all_points
@@ -116,8 +117,8 @@ def diagnose(cfg: DictConfig) -> dict:
                  100 * report["splits"][split]["rollout"][-1])
     out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "diagnose.json").write_text(json.dumps(report, indent=1))
-    (out / "diagnose.md").write_text(markdown(report))
+    atomic.write_text(out / "diagnose.json", json.dumps(report, indent=1))
+    atomic.write_text(out / "diagnose.md", markdown(report))
     plot(report, out / "diagnose.png")
     return report
 

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from data_schema import atomic
 from learn import checkpoint
 from learn.dataset import GraphSet, episode_paths, load_features
 from learn.features import EpisodeFeatures, rebuild_all_points
@@ -153,8 +154,8 @@ def evaluate(cfg: DictConfig) -> dict:
         "validity_thresholds": OmegaConf.to_container(cfg.validity),
         "designs": designs,
     }
-    (out_dir / "report.json").write_text(json.dumps(finite_or_null(report), indent=1, allow_nan=False))
-    (out_dir / "report.md").write_text(markdown(report))
+    atomic.write_text(out_dir / "report.json", json.dumps(finite_or_null(report), indent=1, allow_nan=False))
+    atomic.write_text(out_dir / "report.md", markdown(report))
     if cfg.plots:
         from learn.plots import plot_report
         plot_report(report, rollouts, out_dir)

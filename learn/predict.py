@@ -24,6 +24,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from data_schema import atomic
 from data_schema.episode import read_episode
 from data_schema.view import write_series
 from learn import checkpoint
@@ -113,7 +114,7 @@ def predict(cfg: DictConfig) -> dict:
         if "max_rel_error" in result else ""
     if cfg.plots:
         plot_prediction(r, f"{episode.name}: {steps} steps{err_text}; {verdict_text}", out_dir / "prediction.png")
-    (out_dir / "prediction.json").write_text(json.dumps(result, indent=1))
+    atomic.write_text(out_dir / "prediction.json", json.dumps(result, indent=1))
     log.info("%s: %d steps in %.1f ms%s; %s -> %s", episode.name, steps, rollout_ms, err_text, verdict_text,
              out_dir)
     return result

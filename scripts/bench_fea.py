@@ -21,6 +21,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+from data_schema import atomic  # noqa: E402
 
 from fea_factory.compare import bench_design, corner_positions, run_solve  # noqa: E402
 
@@ -73,7 +74,7 @@ def main() -> None:
     for r in rows:
         lines.append("| " + " | ".join(f"{r.get(k):.4g}" if isinstance(r.get(k), float) else str(r.get(k, ""))
                                        for k in keys) + " |")
-    (out / "bench.md").write_text("\n".join(lines) + "\n")
+    atomic.write_text(out / "bench.md", "\n".join(lines) + "\n")
     import matplotlib
 
     matplotlib.use("Agg")

@@ -17,6 +17,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+from data_schema import atomic  # noqa: E402
 
 import torch  # noqa: E402
 
@@ -80,7 +81,7 @@ def main() -> None:
              "| rotations | mirror | copies | ms per design (median) | min / max over designs |", "|---|---|---|---|---|"]
     lines += [f"| {r['rotations']} | {r['mirror']} | {r['copies']} | {r['ms_per_design']:.2f} | "
               f"{r['ms_min']:.2f} / {r['ms_max']:.2f} |" for r in rows]
-    (out / "rollout.md").write_text("\n".join(lines) + "\n")
+    atomic.write_text(out / "rollout.md", "\n".join(lines) + "\n")
 
     import matplotlib
 

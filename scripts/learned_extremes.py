@@ -20,6 +20,7 @@ from hydra import compose, initialize_config_dir
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+from data_schema import atomic  # noqa: E402
 
 from fea_factory.extremes import NOMINAL_SIGMA  # noqa: E402
 from learn.evaluate import evaluate  # noqa: E402
@@ -72,13 +73,13 @@ def main() -> None:
                          "reasons": d["validity"]["reasons"],
                          "out_of_range_fraction": d["validity"]["out_of_range_fraction"],
                          "max_dislocation_mm": d["validity"]["max_dislocation_mm"]})
-    (out / "summary.json").write_text(json.dumps({"checkpoint": args.checkpoint, "designs": rows}, indent=1))
+    atomic.write_text(out / "summary.json", json.dumps({"checkpoint": args.checkpoint, "designs": rows}, indent=1))
     lines = [f"# Learned simulator outside its training ranges ({args.checkpoint})", "",
              "| case | outside the training range | design | max err / size | verdict |", "|---|---|---|---|---|"]
     for r in rows:
         verdict = "valid" if r["valid"] else "FLAGGED: " + "; ".join(r["reasons"])
         lines.append(f"| {r['case']} | {r['outside']} | {r['design']} | {100 * r['max_rel_error']:.2f}% | {verdict} |")
-    (out / "summary.md").write_text("\n".join(lines) + "\n")
+    atomic.write_text(out / "summary.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
 
 

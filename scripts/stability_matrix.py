@@ -14,6 +14,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+from data_schema import atomic  # noqa: E402
 
 KEYS = ["case", "quantity", "value", "must_converge", "status", "increments", "newton", "cutbacks", "finite",
         "max_disp_mm", "max_disp_rel", "wall_s", "reason"]
@@ -44,7 +45,7 @@ def main() -> None:
              f"Machine: {platform.node()}, {os.cpu_count()} cores. Command: `{' '.join(sys.argv)}`", "",
              "| " + " | ".join(KEYS) + " |", "|" + "---|" * len(KEYS)]
     lines += ["| " + " | ".join(fmt(r.get(k)) for k in KEYS) + " |" for r in rows]
-    (out / "stability.md").write_text("\n".join(lines) + "\n")
+    atomic.write_text(out / "stability.md", "\n".join(lines) + "\n")
     print((out / "stability.md").read_text())
 
 

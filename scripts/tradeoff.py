@@ -45,6 +45,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+from data_schema import atomic  # noqa: E402
 
 from fea_factory.compare import corner_nodes, corner_positions, episode_error, run_solve  # noqa: E402
 from fea_factory.tradeoff import (INCREMENT_MODES, LINEAR_SOLVERS, TABLE, Setting, TradeoffError,  # noqa: E402
@@ -476,7 +477,7 @@ def main() -> None:
     # per-setting figures over the designs whose reference run succeeded
     table = summarize([r for r in rows if refs.get(r["design"]) is not None], reference, args.reference)
     plot(table, out, reference)
-    (out / "summary.md").write_text(markdown(rows, table, designs_info, reference, args, wall_total, load_before,
+    atomic.write_text(out / "summary.md", markdown(rows, table, designs_info, reference, args, wall_total, load_before,
                                              load_after, learned_note))
     fea_table = [t for t in table if t["kind"] == "fea"]
     if args.install and not any(math.isfinite(t["max_rel_error"]) and not t["reference"] for t in fea_table):
