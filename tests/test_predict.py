@@ -107,3 +107,19 @@ def test_bench_rollout_writes_a_row_per_setting_and_refuses_a_bad_one(trained, d
     assert "Machine:" in (tmp_path / "b" / "rollout.md").read_text()
     bad = subprocess.run(base + ["--settings", "0:false"], capture_output=True, text=True, timeout=600)
     assert bad.returncode != 0 and "--settings" in bad.stderr
+
+
+def test_first_step_probe_writes_a_row_and_refuses_a_bad_frame_count(trained, data_dir, tmp_path):  # noqa: F811
+    run_dir, _ = trained
+    base = [sys.executable, str(ROOT / "scripts" / "first_step.py"), "--data-dir", str(data_dir),
+            "--split-from", str(run_dir / "last.pt"), "--train-designs", "3", "--epochs", "2",
+            "--out", str(tmp_path / "fs"), "rotations=2", "model.n_blocks=3"]
+    r = subprocess.run(base, capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert r.returncode == 0, r.stderr[-2000:]
+    header, row = (tmp_path / "fs" / "first_step.csv").read_text().splitlines()
+    values = dict(zip(header.split(","), row.split(",")))
+    assert values["overrides"] == "rotations=2 model.n_blocks=3" and values["frames"] == "2"
+    assert 0 < float(values["train_error"]) < 1 and 0 < float(values["val_error"]) < 1
+    assert float(values["fea_motion_val"]) > 0
+    bad = subprocess.run(base + ["--frames", "1"], capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert bad.returncode != 0 and "--frames=1" in bad.stderr
