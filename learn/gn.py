@@ -26,20 +26,40 @@ def sum_to(messages: torch.Tensor, index: torch.Tensor, n: int) -> torch.Tensor:
     return out.index_add_(-2, index, messages)
 
 
+def design_means(x: torch.Tensor, graph: torch.Tensor | None, n_graphs: int) -> torch.Tensor:
+    """[..., n, H] rows -> [..., n_graphs, H] the mean of each design's rows (graph: the design of every row in a
+    disjoint union; None: all rows are one design)."""
+    if graph is None:
+        return x.mean(-2, keepdim=True)
+    count = torch.bincount(graph, minlength=n_graphs).clamp_min(1).to(x.dtype)[:, None]
+    return sum_to(x, graph, n_graphs) / count
+
+
+def to_rows(u: torch.Tensor, graph: torch.Tensor | None, n: int) -> torch.Tensor:
+    """[..., n_graphs, H] per design -> [..., n, H] per row of the design (inverse of design_means' grouping)."""
+    return u.expand(*u.shape[:-2], n, u.shape[-1]) if graph is None else u.index_select(-2, graph)
+
+
 class GNBlock(nn.Module):
     """The thesis' GN block (its Figure 34): f_I-joint and f_I-beam see cat(X_beam, X_sender, X_receiver, X_edge)
-    of each directed edge; f_U-beam sees cat(X_beam, sum of I_beam), f_U-joint cat(X_joint, sum of I_joint)."""
+    of each directed edge; f_U-beam sees cat(X_beam, sum of I_beam), f_U-joint cat(X_joint, sum of I_joint).
+
+    With global_latent > 0 (graph_nets' global attribute, not in the thesis) a design-wide vector
+    u = f_G(mean of I_joint over the design's joints, mean of I_beam over its beams) is appended to both update
+    MLPs' inputs, so one block reaches the whole grid instead of one hop."""
 
     def __init__(self, joint_in: int, beam_in: int, edge_in: int, latent: int, widths: list[int],
-                 joint_out: int, beam_out: int, layer_norm: bool = False, latent_out: bool = False):
+                 joint_out: int, beam_out: int, layer_norm: bool = False, latent_out: bool = False,
+                 global_latent: int = 0):
         """layer_norm: LayerNorm after the interaction MLPs, and after the update MLPs too when their output is a
         latent graph (latent_out) rather than the final update."""
         super().__init__()
         pair = beam_in + 2 * joint_in + edge_in
         self.joint_interaction = mlp(pair, widths, latent, layer_norm)
         self.beam_interaction = mlp(pair, widths, latent, layer_norm)
-        self.beam_update = mlp(beam_in + latent, widths, beam_out, layer_norm and latent_out)
-        self.joint_update = mlp(joint_in + latent, widths, joint_out, layer_norm and latent_out)
+        self.design = mlp(2 * latent, widths, global_latent, layer_norm) if global_latent > 0 else None
+        self.beam_update = mlp(beam_in + latent + global_latent, widths, beam_out, layer_norm and latent_out)
+        self.joint_update = mlp(joint_in + latent + global_latent, widths, joint_out, layer_norm and latent_out)
 
     def forward(self, joints: torch.Tensor, beams: torch.Tensor, edges: torch.Tensor,
                 g: GraphIndex) -> tuple[torch.Tensor, torch.Tensor]:
@@ -48,5 +68,10 @@ class GNBlock(nn.Module):
                           joints.index_select(-2, g.receivers), edges], dim=-1)  # [..., E, P]
         to_joints = sum_to(self.joint_interaction(pair), g.receivers, joints.shape[-2])  # [..., J, latent]
         to_beams = sum_to(self.beam_interaction(pair), g.edge_beam, beams.shape[-2])  # [..., B, latent]
-        return (self.joint_update(torch.cat([joints, to_joints], dim=-1)),
-                self.beam_update(torch.cat([beams, to_beams], dim=-1)))
+        joint_in, beam_in = [joints, to_joints], [beams, to_beams]
+        if self.design is not None:  # the design-wide vector u, appended to every joint's and beam's update input
+            u = self.design(torch.cat([design_means(to_joints, g.joint_graph, g.n_graphs),
+                                       design_means(to_beams, g.beam_graph, g.n_graphs)], -1))
+            joint_in.append(to_rows(u, g.joint_graph, joints.shape[-2]))
+            beam_in.append(to_rows(u, g.beam_graph, beams.shape[-2]))
+        return (self.joint_update(torch.cat(joint_in, dim=-1)), self.beam_update(torch.cat(beam_in, dim=-1)))

@@ -129,6 +129,9 @@ class Incidence:
     edge_beam: np.ndarray  # [E] beam
     n_joints: int
     n_beams: int
+    joint_graph: np.ndarray | None = None  # [J] design each joint belongs to in a disjoint union (None: one design)
+    beam_graph: np.ndarray | None = None  # [B]
+    n_graphs: int = 1
 
     @classmethod
     def from_beams(cls, beams: np.ndarray, n_joints: int) -> "Incidence":
@@ -149,8 +152,11 @@ class Incidence:
         return m
 
     def tensors(self, device: str | torch.device = "cpu") -> "GraphIndex":
+        member = (None, None) if self.joint_graph is None else \
+            (torch.as_tensor(self.joint_graph, device=device), torch.as_tensor(self.beam_graph, device=device))
         return GraphIndex(*(torch.as_tensor(a, device=device) for a in (self.senders, self.receivers, self.edge_beam)),
-                          n_joints=self.n_joints, n_beams=self.n_beams)
+                          n_joints=self.n_joints, n_beams=self.n_beams, joint_graph=member[0], beam_graph=member[1],
+                          n_graphs=self.n_graphs)
 
 
 @dataclass
@@ -162,6 +168,9 @@ class GraphIndex:
     edge_beam: torch.Tensor  # [E]
     n_joints: int
     n_beams: int
+    joint_graph: torch.Tensor | None = None  # [J] design of every joint in a disjoint union; None: a single design
+    beam_graph: torch.Tensor | None = None  # [B]
+    n_graphs: int = 1
 
 
 def disjoint_union(parts: list[Incidence]) -> tuple[Incidence, np.ndarray, np.ndarray]:
@@ -172,5 +181,7 @@ def disjoint_union(parts: list[Incidence]) -> tuple[Incidence, np.ndarray, np.nd
         senders=np.concatenate([p.senders + jo[i] for i, p in enumerate(parts)]),
         receivers=np.concatenate([p.receivers + jo[i] for i, p in enumerate(parts)]),
         edge_beam=np.concatenate([p.edge_beam + bo[i] for i, p in enumerate(parts)]),
-        n_joints=int(jo[-1]), n_beams=int(bo[-1]))
+        n_joints=int(jo[-1]), n_beams=int(bo[-1]),
+        joint_graph=np.repeat(np.arange(len(parts)), np.diff(jo)),
+        beam_graph=np.repeat(np.arange(len(parts)), np.diff(bo)), n_graphs=len(parts))
     return inc, jo, bo

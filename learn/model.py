@@ -22,9 +22,10 @@ class SingleGN(nn.Module):
     """One GN block from the input graph straight to the update dG."""
 
     def __init__(self, joint_in, beam_in, edge_in, joint_out, beam_out, latent: int, widths: list[int],
-                 layer_norm: bool = False):
+                 layer_norm: bool = False, global_latent: int = 0):
         super().__init__()
-        self.gn = GNBlock(joint_in, beam_in, edge_in, latent, widths, joint_out, beam_out, layer_norm)
+        self.gn = GNBlock(joint_in, beam_in, edge_in, latent, widths, joint_out, beam_out, layer_norm,
+                          global_latent=global_latent)
 
     def forward(self, joints, beams, edges, g: GraphIndex):
         return self.gn(joints, beams, edges, g)
@@ -35,13 +36,15 @@ class DoubleGN(nn.Module):
     the chain continues: GN_k sees cat(G, G'_{k-1}), so information travels n_blocks hops per step."""
 
     def __init__(self, joint_in, beam_in, edge_in, joint_out, beam_out, latent: int, widths: list[int],
-                 layer_norm: bool = False, n_blocks: int = 2):
+                 layer_norm: bool = False, n_blocks: int = 2, global_latent: int = 0):
         super().__init__()
         assert n_blocks >= 2, "a double GN has at least two blocks"
-        first = GNBlock(joint_in, beam_in, edge_in, latent, widths, latent, latent, layer_norm, latent_out=True)
+        first = GNBlock(joint_in, beam_in, edge_in, latent, widths, latent, latent, layer_norm, latent_out=True,
+                        global_latent=global_latent)
         middle = [GNBlock(joint_in + latent, beam_in + latent, edge_in, latent, widths, latent, latent, layer_norm,
-                          latent_out=True) for _ in range(n_blocks - 2)]
-        last = GNBlock(joint_in + latent, beam_in + latent, edge_in, latent, widths, joint_out, beam_out, layer_norm)
+                          latent_out=True, global_latent=global_latent) for _ in range(n_blocks - 2)]
+        last = GNBlock(joint_in + latent, beam_in + latent, edge_in, latent, widths, joint_out, beam_out, layer_norm,
+                       global_latent=global_latent)
         self.blocks = nn.ModuleList([first, *middle, last])
 
     def forward(self, joints, beams, edges, g: GraphIndex):
@@ -94,6 +97,14 @@ def rollout_rotations_checked(value, name: str) -> int:
     return int(value)
 
 
+def global_latent_checked(value) -> int:
+    """model.global_latent: length of the design-wide vector of every GN block, an integer in [0, 1024] (0: none, the
+    thesis' block)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or int(value) != value or not 0 <= value <= 1024:
+        raise ValueError(f"model.global_latent={value!r}: must be an integer in [0, 1024] (0 = no design-wide vector)")
+    return int(value)
+
+
 def term_retention(retention: float | dict) -> dict[str, float]:
     """pca_retention as {term kind: variance fraction kept}: one number for every term, or a mapping with a value
     per kind (geometry, stress, bc); each in (0, 1]."""
@@ -115,6 +126,7 @@ class Simulator(nn.Module):
           latent (int), widths (list[int]), time_input (bool), layer_norm (bool), pin_fixed_joint (bool),
           bc_position ("reference": the boundary-condition position is the block's reference position relative
           to the fixed joint; "current": its current one),
+          global_latent (int >= 0: a design-wide vector per GN block, graph_nets' global; 0 = the thesis),
           frame ("global": features translated to each block's origin, as in the thesis; "local": also rotated
           into each block's own frame, updates predicted there, gravity given per block; implies a current
           bc position), update ("additive": G(t+1) = G(t) + dG, the thesis; "kinematic": geometry updates are
@@ -140,7 +152,8 @@ class Simulator(nn.Module):
         extra = (1 if args.get("time_input", True) else 0) + (3 if self.local else 0)
         joint_in = sum(self.pca[t].k for t in TERMS[:3]) + extra
         beam_in = sum(self.pca[t].k for t in TERMS[3:]) + extra
-        core_args = dict(layer_norm=bool(args.get("layer_norm", False)))
+        core_args = dict(layer_norm=bool(args.get("layer_norm", False)),
+                         global_latent=global_latent_checked(args.get("global_latent", 0)))
         if args["core"] == "double_gn":
             core_args["n_blocks"] = int(args.get("n_blocks", 2))
         self.core = CORES[args["core"]](joint_in, beam_in, self.edge_norm.mean.shape[0], JOINT.state_size,

@@ -7,7 +7,7 @@ from data_schema.testing import synthetic_episode
 from learn.dataset import GraphSet, augment, split_names
 from learn.features import extract
 from learn.gn import GNBlock
-from learn.graph import BEAM, JOINT, Incidence
+from learn.graph import BEAM, JOINT, Incidence, disjoint_union
 from learn.model import TERMS, Simulator
 from learn.pca import Normalizer, TermPCA
 
@@ -71,10 +71,12 @@ def _random_graph(seed=0):
     return inc, torch.randn(2, 4, 5, generator=g), torch.randn(2, 5, 7, generator=g), torch.randn(2, 10, 3, generator=g)
 
 
-def test_gn_block_shapes_and_permutation_equivariance():
+@pytest.mark.parametrize("global_latent", [0, 6])
+def test_gn_block_shapes_and_permutation_equivariance(global_latent):
     torch.manual_seed(0)
     inc, xj, xb, xe = _random_graph()
-    gn = GNBlock(joint_in=5, beam_in=7, edge_in=3, latent=8, widths=[16, 12], joint_out=4, beam_out=6)
+    gn = GNBlock(joint_in=5, beam_in=7, edge_in=3, latent=8, widths=[16, 12], joint_out=4, beam_out=6,
+                 global_latent=global_latent)
     oj, ob = gn(xj, xb, xe, inc.tensors())
     assert oj.shape == (2, 4, 4) and ob.shape == (2, 5, 6)
     pj, pb = np.array([2, 0, 3, 1]), np.array([4, 2, 0, 1, 3])  # new joint n is old pj[n]; new beam b is old pb[b]
@@ -84,6 +86,34 @@ def test_gn_block_shapes_and_permutation_equivariance():
     edge_perm = np.concatenate([pb, pb + 5])
     oj2, ob2 = gn(xj[:, pj], xb[:, pb], xe[:, edge_perm], inc2.tensors())
     assert torch.allclose(oj2, oj[:, pj], atol=1e-5) and torch.allclose(ob2, ob[:, pb], atol=1e-5)
+
+
+def test_design_wide_vector_stays_within_its_design():
+    """A block with a design-wide vector gives every design of a disjoint union what it gives that design alone
+    (one graph per leading batch row), and it does reach beyond one hop: a joint far from a change sees it."""
+    torch.manual_seed(0)
+    gn = GNBlock(joint_in=5, beam_in=7, edge_in=3, latent=8, widths=[16, 12], joint_out=4, beam_out=6,
+                 global_latent=6)
+    inc_a, xj_a, xb_a, xe_a = _random_graph(1)
+    chain = Incidence.from_beams(np.array([[0, 1], [1, 2], [2, 3], [3, 4]]), 5)
+    g = torch.Generator().manual_seed(2)
+    xj_b, xb_b, xe_b = (torch.randn(2, 5, 5, generator=g), torch.randn(2, 4, 7, generator=g),
+                        torch.randn(2, 8, 3, generator=g))
+    union, jo, bo = disjoint_union([inc_a, chain])
+    edges_u = torch.cat([xe_a, xe_b], 1)  # the union lists design a's directed edges, then design b's
+    oj, ob = gn(torch.cat([xj_a, xj_b], 1), torch.cat([xb_a, xb_b], 1), edges_u, union.tensors())
+    for inc, xj, xb, xe, j, b in ((inc_a, xj_a, xb_a, xe_a, slice(0, 4), slice(0, 5)),
+                                  (chain, xj_b, xb_b, xe_b, slice(4, 9), slice(5, 9))):
+        alone_j, alone_b = gn(xj, xb, xe, inc.tensors())
+        assert torch.allclose(oj[:, j], alone_j, atol=1e-5) and torch.allclose(ob[:, b], alone_b, atol=1e-5)
+    moved = xj_b.clone()
+    moved[:, 0] += 1.0  # joint 0 of the chain: joint 4 is four hops away
+    far_before = gn(xj_b, xb_b, xe_b, chain.tensors())[0][:, 4]
+    far_after = gn(moved, xb_b, xe_b, chain.tensors())[0][:, 4]
+    assert (far_after - far_before).abs().max() > 1e-4
+    plain = GNBlock(joint_in=5, beam_in=7, edge_in=3, latent=8, widths=[16, 12], joint_out=4, beam_out=6)
+    assert torch.allclose(plain(xj_b, xb_b, xe_b, chain.tensors())[0][:, 4],
+                          plain(moved, xb_b, xe_b, chain.tensors())[0][:, 4])  # one hop only without it
 
 
 @pytest.mark.parametrize("core,bc_position", [("single_gn", "reference"), ("double_gn", "reference"),
@@ -226,3 +256,25 @@ def test_rotation_averaged_answer_is_equivariant_and_keeps_the_design(features, 
     for bad in (0, 2.5, "4", 65):
         with pytest.raises(ValueError, match="rollout_rotations"):
             rollout_rotations_checked(bad, "rollout_rotations")
+
+
+def test_design_wide_simulator_steps_designs_apart_and_compiles(features):
+    """global_latent > 0: a batch of designs (disjoint union, as in training) steps each design as if alone, and the
+    traced rollout (one design, no membership index) gives the eager numbers."""
+    from learn.rollout import compile_rollout, graph_inputs
+    from learn.evaluate import eager_rollout
+    data = GraphSet.build(features[:2])
+    args = {"core": "double_gn", "latent": 8, "widths": [16, 8], "time_input": True, "global_latent": 5}
+    model = Simulator.fit(args, data.joint_state, data.beam_state, data.static).eval()
+    with torch.no_grad():
+        j, b = model.step(data.joint_state[:2], data.beam_state[:2], data.static, data.t[:2])
+        for i, f in enumerate(features[:2]):
+            alone = GraphSet.build([f])
+            ja, ba = model.step(alone.joint_state[:2], alone.beam_state[:2], alone.static, alone.t[:2])
+            js, bs = slice(*data.joint_offsets[i:i + 2]), slice(*data.beam_offsets[i:i + 2])
+            assert torch.allclose(j[:, js], ja, atol=1e-4) and torch.allclose(b[:, bs], ba, atol=1e-4)
+        compiled = compile_rollout(model, features[0])
+        got = compiled(*graph_inputs(features[1]))[2]
+        assert torch.allclose(got, eager_rollout(model, features[1])(), atol=1e-3)
+    with pytest.raises(ValueError, match="model.global_latent"):
+        Simulator.fit({**args, "global_latent": -1}, data.joint_state, data.beam_state, data.static)
