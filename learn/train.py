@@ -48,6 +48,26 @@ def learning_rate(cfg: DictConfig, epoch: int) -> float:
     return float(cfg.optim.lr) * (float(cfg.optim.lr_drop_factor) if drop else 1.0)
 
 
+def train_epoch(model: Simulator, opt: torch.optim.Optimizer, train_set: GraphSet, cfg: DictConfig,
+                epoch: int) -> list[float]:
+    """One pass over shuffled mini-batches at the epoch's learning rate; the batch losses."""
+    for group in opt.param_groups:
+        group["lr"] = learning_rate(cfg, epoch)
+    gen = torch.Generator().manual_seed(int(cfg.seed) * 100003 + epoch)
+    losses = []
+    for batch in train_set.batches(cfg.batch_size, gen):
+        loss = multistep_loss(model, batch, cfg.rollout_horizon, cfg.noise_std, cfg.stress_weight, gen,
+                              geometry=cfg.get("loss_geometry", "columns"),
+                              through=cfg.get("rollout_gradient", "through") == "through")
+        opt.zero_grad()
+        loss.backward()
+        if cfg.optim.grad_clip:
+            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.optim.grad_clip)
+        opt.step()
+        losses.append(float(loss.detach()))
+    return losses
+
+
 def evaluate_split(model: Simulator, data: GraphSet, cfg: DictConfig) -> dict:
     model.eval()
     with torch.no_grad():
@@ -140,20 +160,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
     epoch = start - 1
     stop_reason = "epochs"
     for epoch in range(start, int(cfg.epochs)):
-        for group in opt.param_groups:
-            group["lr"] = learning_rate(cfg, epoch)
-        gen = torch.Generator().manual_seed(int(cfg.seed) * 100003 + epoch)
-        losses = []
-        for batch in train_set.batches(cfg.batch_size, gen):
-            loss = multistep_loss(model, batch, cfg.rollout_horizon, cfg.noise_std, cfg.stress_weight, gen,
-                                  geometry=cfg.get("loss_geometry", "columns"),
-                                  through=cfg.get("rollout_gradient", "through") == "through")
-            opt.zero_grad()
-            loss.backward()
-            if cfg.optim.grad_clip:
-                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.optim.grad_clip)
-            opt.step()
-            losses.append(float(loss.detach()))
+        losses = train_epoch(model, opt, train_set, cfg, epoch)
         row = {"epoch": epoch, "lr": learning_rate(cfg, epoch), "train_loss": float(np.mean(losses)),
                **evaluate_split(model, val_set, cfg), "seconds": time.perf_counter() - t0}
         history.append(row)

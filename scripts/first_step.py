@@ -13,7 +13,6 @@ what limits a model shape before a full training (hours); one row per run is app
 from __future__ import annotations
 
 import argparse
-import csv
 import dataclasses
 import sys
 import time
@@ -29,9 +28,9 @@ from hydra import compose, initialize_config_dir  # noqa: E402
 from learn import checkpoint  # noqa: E402
 from learn.dataset import GraphSet, augment, episode_paths, load_features  # noqa: E402
 from learn.features import EpisodeFeatures  # noqa: E402
-from learn.metrics import multistep_loss, rollout_errors  # noqa: E402
+from learn.metrics import rollout_errors  # noqa: E402
 from learn.model import Simulator  # noqa: E402
-from learn.train import model_args, retention_of  # noqa: E402
+from learn.train import append_result, model_args, retention_of, train_epoch  # noqa: E402
 
 
 def first_frames(f: EpisodeFeatures, frames: int) -> EpisodeFeatures:
@@ -60,7 +59,7 @@ def main() -> None:
     if args.frames < 2:
         raise SystemExit(f"--frames={args.frames}: must be >= 2 (frame 0 and at least one step)")
     with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "conf")):
-        cfg = compose("train", overrides=args.overrides)
+        cfg = compose("train", overrides=[*args.overrides, f"epochs={args.epochs}"])
     torch.set_num_threads(int(cfg.threads) or 1)
     torch.manual_seed(int(cfg.seed))
 
@@ -79,20 +78,9 @@ def main() -> None:
           f"frames 0..{args.frames - 1}; {model.n_parameters} parameters; FEA max motion by the last frame "
           f"(validation median) {100 * motion:.2f} %", flush=True)
 
-    gen = torch.Generator().manual_seed(int(cfg.seed))
     t0 = time.perf_counter()
     for epoch in range(args.epochs):
-        lr = cfg.optim.lr * (cfg.optim.lr_drop_factor if epoch >= cfg.optim.lr_drop_at * args.epochs else 1.0)
-        for group in opt.param_groups:
-            group["lr"] = lr
-        for batch in train_set.batches(cfg.batch_size, gen):
-            loss = multistep_loss(model, batch, args.frames - 1, cfg.noise_std, cfg.stress_weight, gen,
-                                  geometry=cfg.loss_geometry)
-            opt.zero_grad()
-            loss.backward()
-            if cfg.optim.grad_clip:
-                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.optim.grad_clip)
-            opt.step()
+        train_epoch(model, opt, train_set, cfg, epoch)
         if epoch % args.log_every == 0 or epoch == args.epochs - 1:
             train_err, val_err = median_final_error(model, train_probe), median_final_error(model, val_set)
             print(f"epoch {epoch:4d}  train {100 * train_err:5.2f} %  val {100 * val_err:5.2f} %  "
@@ -103,13 +91,7 @@ def main() -> None:
            "train_error": round(train_err, 5), "val_error": round(val_err, 5),
            "seconds": round(time.perf_counter() - t0, 1)}
     out = Path(args.out) / "first_step.csv"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    new = not out.exists()
-    with out.open("a", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(row))
-        if new:
-            w.writeheader()
-        w.writerow(row)
+    append_result(out, row)
     print(f"-> {out}")
 
 
