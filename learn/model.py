@@ -90,19 +90,22 @@ def local_geometry(geometry: torch.Tensor, block: Block) -> torch.Tensor:
 TERM_KINDS = ("geometry", "stress", "bc")
 
 
+def integer_in(value, name: str, low: int, high: int, meaning: str) -> int:
+    """value as an int when it is an integer in [low, high]; otherwise a ValueError naming `name` and the range."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or int(value) != value or \
+            not low <= value <= high:
+        raise ValueError(f"{name}={value!r}: must be an integer in [{low}, {high}] ({meaning})")
+    return int(value)
+
+
 def rollout_rotations_checked(value, name: str) -> int:
     """A rotation count for answer_unroll: an integer in [1, 64]."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or int(value) != value or not 1 <= value <= 64:
-        raise ValueError(f"{name}={value!r}: must be an integer in [1, 64] (1 = the network alone)")
-    return int(value)
+    return integer_in(value, name, 1, 64, "1 = the network alone")
 
 
 def global_latent_checked(value) -> int:
-    """model.global_latent: length of the design-wide vector of every GN block, an integer in [0, 1024] (0: none, the
-    thesis' block)."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or int(value) != value or not 0 <= value <= 1024:
-        raise ValueError(f"model.global_latent={value!r}: must be an integer in [0, 1024] (0 = no design-wide vector)")
-    return int(value)
+    """model.global_latent: length of the design-wide vector of every GN block (0: none, the thesis' block)."""
+    return integer_in(value, "model.global_latent", 0, 1024, "0 = no design-wide vector")
 
 
 def term_retention(retention: float | dict) -> dict[str, float]:
