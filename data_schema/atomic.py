@@ -7,9 +7,10 @@ renamed over it; a failed or killed writer leaves at most a `<name>.<hex>.tmp` b
 from __future__ import annotations
 
 import contextlib
+import csv
 import os
 import secrets
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 
 TMP_SUFFIX = ".tmp"  # "<name>.<random>.tmp": an unfinished write; safe to delete when no writer runs
@@ -48,4 +49,17 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
     """`path` atomically replaced by `text` (UTF-8)."""
     with replacing(path) as tmp:
         tmp.write_text(text, encoding="utf-8")
+    return Path(path)
+
+
+def write_csv(path: str | os.PathLike, rows: Iterable[Mapping], fieldnames: list[str],
+              comments: Iterable[str] = ()) -> Path:
+    """`path` atomically replaced by a CSV: '# ' comment lines first (provenance), a header of `fieldnames`, then
+    one line per row (keys outside `fieldnames` ignored)."""
+    with replacing(path) as tmp, open(tmp, "w", newline="") as f:
+        for c in comments:
+            f.write(f"# {c}\n")
+        w = csv.DictWriter(f, fieldnames=fieldnames, extrasaction="ignore")
+        w.writeheader()
+        w.writerows(rows)
     return Path(path)

@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from data_schema import atomic
+
 ROOT = Path(__file__).resolve().parent.parent
 TABLE = ROOT / "conf" / "solver" / "tradeoff_table.csv"
 
@@ -120,16 +122,8 @@ def _finite(x) -> bool:
 
 def write_table(path: Path, rows: Iterable[Mapping], comments: Iterable[str] = ()) -> Path:
     """CSV with '# ' comment lines first (provenance), then TABLE_COLUMNS."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", newline="") as f:
-        for c in comments:
-            f.write(f"# {c}\n")
-        w = csv.DictWriter(f, fieldnames=TABLE_COLUMNS, extrasaction="ignore")
-        w.writeheader()
-        for r in rows:
-            w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
-    return path
+    formatted = ({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()} for r in rows)
+    return atomic.write_csv(path, formatted, TABLE_COLUMNS, comments)
 
 
 def read_table(path: Path = TABLE) -> list[dict]:

@@ -9,7 +9,6 @@ share (the joints' corner nodes, keyed (block, 0|nw-1, 0|nw-1, 0|nh-1)), as a fr
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import os
 import platform
@@ -63,10 +62,7 @@ def main() -> None:
             row["rel_error_vs_finest"] = row["max_corner_diff_mm"] / size
     keys = ["preset", "ranks", "linear_solver", "status", "cells", "nodes", "increments", "newton", "cutbacks",
             "wall_jit_s", "wall_solve_s", "wall_total_s", "max_corner_diff_mm", "rel_error_vs_finest"]
-    with open(out / "bench.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=keys, extrasaction="ignore")
-        w.writeheader()
-        w.writerows(rows)
+    atomic.write_csv(out / "bench.csv", rows, keys)
     machine = f"{platform.node()} {platform.processor() or platform.machine()}, {os.cpu_count()} cores"
     lines = [f"# FEA benchmark ({design.n_joints} joints, {design.n_beams} beams, size {size:.0f} mm)", "",
              f"Machine: {machine}. Command: `{' '.join([Path(sys.executable).name, *sys.argv])}`", "",

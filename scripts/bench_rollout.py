@@ -8,7 +8,6 @@ command) and rollout.png (ms vs copies, the 5 ms target). Run it on an idle mach
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import sys
 from pathlib import Path
@@ -70,10 +69,7 @@ def main() -> None:
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    with open(out / "rollout.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+    atomic.write_csv(out / "rollout.csv", rows, list(rows[0]))
     lines = [f"# Learned rollout time vs symmetry copies ({a.checkpoint})", "",
              f"Machine: {machine()}; 1 torch thread; load average before/after {load_before} / {load_after}.",
              f"Command: `{' '.join([Path(sys.executable).name, *sys.argv])}`; {len(features)} test designs, "

@@ -5,7 +5,6 @@
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import os
 import platform
@@ -36,10 +35,7 @@ def main() -> None:
     for case in tqdm(chosen, desc="stability cases"):
         rows.append(run_case(case))
         tqdm.write(json.dumps(rows[-1]))
-    with open(out / "stability.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=KEYS, extrasaction="ignore")
-        w.writeheader()
-        w.writerows(rows)
+    atomic.write_csv(out / "stability.csv", rows, KEYS)
     fmt = lambda v: f"{v:.3g}" if isinstance(v, float) else ("" if v is None else str(v))  # noqa: E731
     lines = ["# Stability at the extremes", "",
              f"Machine: {platform.node()}, {os.cpu_count()} cores. Command: `{' '.join(sys.argv)}`", "",

@@ -192,10 +192,7 @@ COLUMNS = ["design", "design_size_mm", "setting", "kind", "mesh", "increments", 
 
 
 def write_csv(path: Path, rows: list[dict]) -> None:
-    with open(path, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=COLUMNS, extrasaction="ignore")
-        w.writeheader()
-        w.writerows({k: _fmt(r.get(k)) for k in COLUMNS} for r in rows)
+    atomic.write_csv(path, ({k: _fmt(r.get(k)) for k in COLUMNS} for r in rows), COLUMNS)
 
 
 NUMERIC = ("design_size_mm", "ranks", "wall_s", "process_s", "newton", "increments_taken", "cutbacks", "peak_mb",

@@ -31,3 +31,10 @@ def test_concurrent_writers_get_distinct_temporaries(tmp_path):
         a.write_text("a")
         b.write_text("b")
     assert target.read_text() == "a"  # the outer block ends last: its content wins, whole
+
+
+def test_write_csv_comments_header_rows_and_ignored_keys(tmp_path):
+    target = tmp_path / "t.csv"
+    atomic.write_csv(target, [{"a": 1, "b": "x", "extra": 9}, {"a": 2, "b": "y"}], ["a", "b"], comments=["made by"])
+    assert target.read_text().splitlines() == ["# made by", "a,b", "1,x", "2,y"]
+    assert [p.name for p in tmp_path.iterdir()] == ["t.csv"]
