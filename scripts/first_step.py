@@ -26,7 +26,7 @@ import torch  # noqa: E402
 from hydra import compose, initialize_config_dir  # noqa: E402
 
 from learn import checkpoint  # noqa: E402
-from learn.dataset import GraphSet, augment, episode_paths, load_features  # noqa: E402
+from learn.dataset import GraphSet, augment, load_features  # noqa: E402
 from learn.features import EpisodeFeatures  # noqa: E402
 from learn.metrics import rollout_errors  # noqa: E402
 from learn.model import Simulator  # noqa: E402
@@ -64,9 +64,15 @@ def main() -> None:
     torch.manual_seed(int(cfg.seed))
 
     split = checkpoint.load(args.split_from)["split"]
-    by_name = {f.name: f for f in load_features(episode_paths(args.data_dir))}
-    train = [first_frames(by_name[n], args.frames) for n in split["train"][:args.train_designs]]
-    val = [first_frames(by_name[n], args.frames) for n in split["val"]]
+    names = {"train": split["train"][:args.train_designs], "val": split["val"]}
+    missing = [n for part in names.values() for n in part if not (Path(args.data_dir) / n).is_file()]
+    if missing:
+        raise SystemExit(f"--data-dir {args.data_dir}: episodes of the split of {args.split_from} are missing: "
+                         f"{missing[:5]}")
+    def load(part: str) -> list[EpisodeFeatures]:
+        return [first_frames(f, args.frames) for f in load_features([Path(args.data_dir) / n for n in names[part]])]
+
+    train, val = load("train"), load("val")
     train_set = GraphSet.build(augment(train, int(cfg.rotations), int(cfg.seed), bool(cfg.mirror)))
     train_probe, val_set = GraphSet.build(train[:40]), GraphSet.build(val)
     model = Simulator.fit(model_args(cfg.model), train_set.joint_state, train_set.beam_state, train_set.static,
