@@ -54,20 +54,39 @@ class GNBlock(nn.Module):
         """layer_norm: LayerNorm after the interaction MLPs, and after the update MLPs too when their output is a
         latent graph (latent_out) rather than the final update."""
         super().__init__()
-        pair = beam_in + 2 * joint_in + edge_in
+        self.pair_split = [beam_in, joint_in, joint_in, edge_in]  # X_beam | X_sender | X_receiver | X_edge
+        pair = sum(self.pair_split)
         self.joint_interaction = mlp(pair, widths, latent, layer_norm)
         self.beam_interaction = mlp(pair, widths, latent, layer_norm)
         self.design = mlp(2 * latent, widths, global_latent, layer_norm) if global_latent > 0 else None
         self.beam_update = mlp(beam_in + latent + global_latent, widths, beam_out, layer_norm and latent_out)
         self.joint_update = mlp(joint_in + latent + global_latent, widths, joint_out, layer_norm and latent_out)
 
+    def interactions(self, joints: torch.Tensor, beams: torch.Tensor, edges: torch.Tensor,
+                     g: GraphIndex) -> tuple[torch.Tensor, torch.Tensor]:
+        """f_I-joint(pair) and f_I-beam(pair) of every directed edge, pair = cat(X_beam, X_sender, X_receiver,
+        X_edge). Their first layers are linear in the pair, so each is applied to every beam and joint once and the
+        products gathered per edge: W pair = W_b X_beam + W_s X_sender + W_r X_receiver + W_e X_edge, the same sum
+        with about half the multiply-adds (a graph has twice as many directed edges as beams and 3x as many as
+        joints); the two MLPs share those products as one matrix."""
+        mlps = (self.joint_interaction, self.beam_interaction)
+        weight = torch.cat([m[0].weight for m in mlps])  # [2 H, P]: both first layers
+        bias = torch.cat([m[0].bias for m in mlps])
+        # split sizes from the module, not the inputs' shapes, so a frozen trace folds these weights into constants
+        w_beam, w_sender, w_receiver, w_edge = weight.split(self.pair_split, dim=1)
+        per_joint = joints @ torch.cat([w_sender, w_receiver]).T  # [..., J, 4 H]: as sender | as receiver
+        as_sender, as_receiver = per_joint.split(weight.shape[0], dim=-1)
+        hidden = ((beams @ w_beam.T).index_select(-2, g.edge_beam) + as_sender.index_select(-2, g.senders)
+                  + as_receiver.index_select(-2, g.receivers) + edges @ w_edge.T + bias)  # [..., E, 2 H]
+        joint_hidden, beam_hidden = hidden.split([m[0].out_features for m in mlps], dim=-1)
+        return mlps[0][1:](joint_hidden), mlps[1][1:](beam_hidden)
+
     def forward(self, joints: torch.Tensor, beams: torch.Tensor, edges: torch.Tensor,
                 g: GraphIndex) -> tuple[torch.Tensor, torch.Tensor]:
         # joints [..., J, Dj], beams [..., B, Db], edges [..., E, De] -> [..., J, joint_out], [..., B, beam_out]
-        pair = torch.cat([beams.index_select(-2, g.edge_beam), joints.index_select(-2, g.senders),
-                          joints.index_select(-2, g.receivers), edges], dim=-1)  # [..., E, P]
-        to_joints = sum_to(self.joint_interaction(pair), g.receivers, joints.shape[-2])  # [..., J, latent]
-        to_beams = sum_to(self.beam_interaction(pair), g.edge_beam, beams.shape[-2])  # [..., B, latent]
+        to_joint_edges, to_beam_edges = self.interactions(joints, beams, edges, g)  # [..., E, latent] each
+        to_joints = sum_to(to_joint_edges, g.receivers, joints.shape[-2])  # [..., J, latent]
+        to_beams = sum_to(to_beam_edges, g.edge_beam, beams.shape[-2])  # [..., B, latent]
         joint_in, beam_in = [joints, to_joints], [beams, to_beams]
         if self.design is not None:  # the design-wide vector u, appended to every joint's and beam's update input
             u = self.design(torch.cat([design_means(to_joints, g.joint_graph, g.n_graphs),

@@ -88,6 +88,25 @@ def test_gn_block_shapes_and_permutation_equivariance(global_latent):
     assert torch.allclose(oj2, oj[:, pj], atol=1e-5) and torch.allclose(ob2, ob[:, pb], atol=1e-5)
 
 
+@pytest.mark.parametrize("widths,layer_norm", [([16, 12], False), ([16], True), ([], False)])
+def test_gn_block_interactions_are_the_mlps_of_the_concatenated_pair(widths, layer_norm):
+    """The per-node first layer (GNBlock.interactions) is the thesis' f_I(cat(X_beam, X_sender, X_receiver, X_edge))
+    of every directed edge, written out here as that formula."""
+    torch.manual_seed(0)
+    inc, xj, xb, xe = _random_graph()
+    g = inc.tensors()
+    gn = GNBlock(joint_in=5, beam_in=7, edge_in=3, latent=8, widths=widths, joint_out=4, beam_out=6,
+                 layer_norm=layer_norm)
+    pair = torch.cat([xb[:, g.edge_beam], xj[:, g.senders], xj[:, g.receivers], xe], -1)
+    to_joint_edges, to_beam_edges = gn.interactions(xj, xb, xe, g)
+    assert to_joint_edges.shape == (2, 10, 8)
+    assert torch.allclose(to_joint_edges, gn.joint_interaction(pair), atol=1e-5)
+    assert torch.allclose(to_beam_edges, gn.beam_interaction(pair), atol=1e-5)
+    loss = (to_joint_edges.sum() + to_beam_edges.sum())
+    loss.backward()
+    assert gn.joint_interaction[0].weight.grad.abs().sum() > 0 and gn.beam_interaction[0].weight.grad.abs().sum() > 0
+
+
 def test_design_wide_vector_stays_within_its_design():
     """A block with a design-wide vector gives every design of a disjoint union what it gives that design alone
     (one graph per leading batch row), and it does reach beyond one hop: a joint far from a change sees it."""
