@@ -94,3 +94,34 @@ class GNBlock(nn.Module):
             joint_in.append(to_rows(u, g.joint_graph, joints.shape[-2]))
             beam_in.append(to_rows(u, g.beam_graph, beams.shape[-2]))
         return (self.joint_update(torch.cat(joint_in, dim=-1)), self.beam_update(torch.cat(beam_in, dim=-1)))
+
+
+class ProcessorBlock(nn.Module):
+    """One message-passing step of an encode-process-decode core (MeshGraphNets' processor, on the joint/beam
+    graph), every update residual: a directed edge's latent e += f_E(e, h_beam, h_sender, h_receiver); then
+    h_joint += f_J(h_joint, sum of its incoming edges' e) and h_beam += f_B(h_beam, sum of its two edges' e).
+    With global_latent > 0 the joint and beam updates also see a design-wide vector from the mean edge sums, as in
+    GNBlock."""
+
+    def __init__(self, latent: int, widths: list[int], layer_norm: bool = True, global_latent: int = 0):
+        super().__init__()
+        self.edge = mlp(4 * latent, widths, latent, layer_norm)
+        self.design = mlp(2 * latent, widths, global_latent, layer_norm) if global_latent > 0 else None
+        self.joint = mlp(2 * latent + global_latent, widths, latent, layer_norm)
+        self.beam = mlp(2 * latent + global_latent, widths, latent, layer_norm)
+
+    def forward(self, joints: torch.Tensor, beams: torch.Tensor, edges: torch.Tensor,
+                g: GraphIndex) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        # latents joints [..., J, L], beams [..., B, L], edges [..., E, L] -> the same, updated
+        edges = edges + self.edge(torch.cat([edges, beams.index_select(-2, g.edge_beam),
+                                             joints.index_select(-2, g.senders),
+                                             joints.index_select(-2, g.receivers)], -1))
+        to_joints = sum_to(edges, g.receivers, joints.shape[-2])
+        to_beams = sum_to(edges, g.edge_beam, beams.shape[-2])
+        joint_in, beam_in = [joints, to_joints], [beams, to_beams]
+        if self.design is not None:
+            u = self.design(torch.cat([design_means(to_joints, g.joint_graph, g.n_graphs),
+                                       design_means(to_beams, g.beam_graph, g.n_graphs)], -1))
+            joint_in.append(to_rows(u, g.joint_graph, joints.shape[-2]))
+            beam_in.append(to_rows(u, g.beam_graph, beams.shape[-2]))
+        return joints + self.joint(torch.cat(joint_in, -1)), beams + self.beam(torch.cat(beam_in, -1)), edges

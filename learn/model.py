@@ -9,7 +9,7 @@ import torch
 from torch import nn
 
 from learn import frames, kinematics
-from learn.gn import GNBlock
+from learn.gn import GNBlock, ProcessorBlock, mlp
 from learn.graph import BEAM, JOINT, Block, GraphIndex
 from learn.pca import Normalizer, TermPCA
 
@@ -54,7 +54,31 @@ class DoubleGN(nn.Module):
         return lj, lb
 
 
-CORES = {"single_gn": SingleGN, "double_gn": DoubleGN}
+class EncodeProcessDecode(nn.Module):
+    """MeshGraphNets' core on the joint/beam graph (not in the thesis): MLPs encode joints, beams and directed edges
+    to latents of one size, n_blocks residual ProcessorBlocks pass messages (one joint-beam-joint hop each), MLPs
+    decode each joint's and beam's latent to dG. Reach grows with n_blocks at a small cost per block: its MLPs see
+    latents, not the concatenated inputs of every block in the chain."""
+
+    def __init__(self, joint_in, beam_in, edge_in, joint_out, beam_out, latent: int, widths: list[int],
+                 layer_norm: bool = True, n_blocks: int = 6, global_latent: int = 0):
+        super().__init__()
+        self.encode_joint = mlp(joint_in, widths, latent, layer_norm)
+        self.encode_beam = mlp(beam_in, widths, latent, layer_norm)
+        self.encode_edge = mlp(edge_in, widths, latent, layer_norm)
+        self.blocks = nn.ModuleList([ProcessorBlock(latent, widths, layer_norm, global_latent)
+                                     for _ in range(n_blocks)])
+        self.decode_joint = mlp(latent, widths, joint_out)
+        self.decode_beam = mlp(latent, widths, beam_out)
+
+    def forward(self, joints, beams, edges, g: GraphIndex):
+        hj, hb, he = self.encode_joint(joints), self.encode_beam(beams), self.encode_edge(edges)
+        for block in self.blocks:
+            hj, hb, he = block(hj, hb, he, g)
+        return self.decode_joint(hj), self.decode_beam(hb)
+
+
+CORES = {"single_gn": SingleGN, "double_gn": DoubleGN, "epd": EncodeProcessDecode}
 
 
 @dataclass
@@ -125,7 +149,8 @@ def term_retention(retention: float | dict) -> dict[str, float]:
 class Simulator(nn.Module):
     """States in, next states out; every statistic (PCA, normalisers) is a buffer of this module.
 
-    args: core ("double_gn" | "single_gn"), n_blocks (double_gn: GN blocks in the chain, 2 = the thesis),
+    args: core ("double_gn" | "single_gn" | "epd": encode-process-decode), n_blocks (double_gn: GN blocks in the
+          chain, 2 = the thesis; epd: processor blocks),
           latent (int), widths (list[int]), time_input (bool), layer_norm (bool), pin_fixed_joint (bool),
           bc_position ("reference": the boundary-condition position is the block's reference position relative
           to the fixed joint; "current": its current one),
@@ -157,8 +182,11 @@ class Simulator(nn.Module):
         beam_in = sum(self.pca[t].k for t in TERMS[3:]) + extra
         core_args = dict(layer_norm=bool(args.get("layer_norm", False)),
                          global_latent=global_latent_checked(args.get("global_latent", 0)))
-        if args["core"] == "double_gn":
-            core_args["n_blocks"] = int(args.get("n_blocks", 2))
+        if args["core"] not in CORES:
+            raise ValueError(f"model.core={args['core']!r}: must be one of {sorted(CORES)}")
+        if args["core"] in ("double_gn", "epd"):
+            core_args["n_blocks"] = integer_in(args.get("n_blocks", 2), "model.n_blocks",
+                                               2 if args["core"] == "double_gn" else 1, 64, "message-passing blocks")
         self.core = CORES[args["core"]](joint_in, beam_in, self.edge_norm.mean.shape[0], JOINT.state_size,
                                         BEAM.state_size, int(args["latent"]), [int(w) for w in args["widths"]],
                                         **core_args)

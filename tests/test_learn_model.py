@@ -136,7 +136,7 @@ def test_design_wide_vector_stays_within_its_design():
 
 
 @pytest.mark.parametrize("core,bc_position", [("single_gn", "reference"), ("double_gn", "reference"),
-                                              ("double_gn", "current")])
+                                              ("double_gn", "current"), ("epd", "reference")])
 def test_simulator_step_shapes(features, core, bc_position):
     data = GraphSet.build(features[:2])
     model = Simulator.fit({"core": core, "latent": 8, "widths": [16, 8], "time_input": True,
@@ -277,13 +277,15 @@ def test_rotation_averaged_answer_is_equivariant_and_keeps_the_design(features, 
             rollout_rotations_checked(bad, "rollout_rotations")
 
 
-def test_design_wide_simulator_steps_designs_apart_and_compiles(features):
+@pytest.mark.parametrize("core", ["double_gn", "epd"])
+def test_design_wide_simulator_steps_designs_apart_and_compiles(features, core):
     """global_latent > 0: a batch of designs (disjoint union, as in training) steps each design as if alone, and the
     traced rollout (one design, no membership index) gives the eager numbers."""
     from learn.rollout import compile_rollout, graph_inputs
     from learn.evaluate import eager_rollout
     data = GraphSet.build(features[:2])
-    args = {"core": "double_gn", "latent": 8, "widths": [16, 8], "time_input": True, "global_latent": 5}
+    args = {"core": core, "latent": 8, "widths": [16, 8], "time_input": True, "global_latent": 5, "n_blocks": 3,
+            "layer_norm": core == "epd"}
     model = Simulator.fit(args, data.joint_state, data.beam_state, data.static).eval()
     with torch.no_grad():
         j, b = model.step(data.joint_state[:2], data.beam_state[:2], data.static, data.t[:2])
@@ -297,3 +299,35 @@ def test_design_wide_simulator_steps_designs_apart_and_compiles(features):
         assert torch.allclose(got, eager_rollout(model, features[1])(), atol=1e-3)
     with pytest.raises(ValueError, match="model.global_latent"):
         Simulator.fit({**args, "global_latent": -1}, data.joint_state, data.beam_state, data.static)
+
+
+@pytest.mark.parametrize("n_blocks", [3, 4])
+def test_encode_process_decode_reaches_n_blocks_hops_and_is_equivariant(n_blocks):
+    """The processor passes one joint-beam-joint hop per block: on a chain, a change at joint 0 reaches joint 4
+    (four hops) with 4 blocks and not with 3; relabelling joints and beams relabels the output."""
+    from learn.model import EncodeProcessDecode
+    torch.manual_seed(0)
+    core = EncodeProcessDecode(5, 7, 3, 4, 6, latent=8, widths=[16], n_blocks=n_blocks)
+    chain = Incidence.from_beams(np.array([[0, 1], [1, 2], [2, 3], [3, 4]]), 5)
+    g = torch.Generator().manual_seed(2)
+    xj, xb, xe = torch.randn(2, 5, 5, generator=g), torch.randn(2, 4, 7, generator=g), torch.randn(2, 8, 3, generator=g)
+    moved = xj.clone()
+    moved[:, 0] += 1.0
+    change = (core(moved, xb, xe, chain.tensors())[0][:, 4] - core(xj, xb, xe, chain.tensors())[0][:, 4]).abs().max()
+    assert (change > 1e-6) if n_blocks >= 4 else (change == 0)  # float32 round-off is ~1e-7 here
+    inc, xj, xb, xe = _random_graph()
+    oj, ob = core(xj, xb, xe, inc.tensors())
+    pj, pb = np.array([2, 0, 3, 1]), np.array([4, 2, 0, 1, 3])
+    beams = np.stack([inc.senders[:5], inc.receivers[:5]], 1)
+    inc2 = Incidence.from_beams(np.argsort(pj)[beams[pb]], 4)
+    oj2, ob2 = core(xj[:, pj], xb[:, pb], xe[:, np.concatenate([pb, pb + 5])], inc2.tensors())
+    assert torch.allclose(oj2, oj[:, pj], atol=1e-5) and torch.allclose(ob2, ob[:, pb], atol=1e-5)
+
+
+def test_model_core_and_block_count_are_checked(features):
+    data = GraphSet.build(features[:1])
+    args = {"core": "epd", "latent": 8, "widths": [16], "time_input": True}
+    with pytest.raises(ValueError, match="model.n_blocks=0"):
+        Simulator.fit({**args, "n_blocks": 0}, data.joint_state, data.beam_state, data.static)
+    with pytest.raises(ValueError, match="model.core='gat'"):
+        Simulator.fit({**args, "core": "gat"}, data.joint_state, data.beam_state, data.static)

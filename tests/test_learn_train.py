@@ -156,7 +156,7 @@ def test_evaluate_all_episodes_joined_splits_and_refuse_an_unknown_split(trained
         evaluate(cfg_for("evaluate", base + [f"out_dir={tmp_path / 'bad'}", "split=holdout"]))
 
 
-@pytest.mark.parametrize("model_name", ["single_gn", "double_gn"])
+@pytest.mark.parametrize("model_name", ["single_gn", "double_gn", "epd"])
 def test_every_model_config_composes_and_trains(data_dir, tmp_path, model_name):
     cfg = cfg_for("train", [f"model={model_name}"] + tiny(data_dir, tmp_path, "epochs=1", "rollout_horizon=3",
                                                          "noise_std=0.1", "batch_size=1"))
