@@ -156,6 +156,33 @@ def test_evaluate_all_episodes_joined_splits_and_refuse_an_unknown_split(trained
         evaluate(cfg_for("evaluate", base + [f"out_dir={tmp_path / 'bad'}", "split=holdout"]))
 
 
+def test_combine_pools_reports_of_one_model_over_the_union_of_designs(trained, data_dir, tmp_path):
+    """learn.combine: the val and test reports pooled equal the val+test report's distributions (same designs);
+    reports of two different checkpoints or the same design twice are refused."""
+    from learn.combine import combine
+    run, _ = trained
+    base = [f"checkpoint={run / 'best.pt'}", f"data_dir={data_dir}", "timing_repeats=1", "plots=false"]
+    parts = {s: evaluate(cfg_for("evaluate", base + [f"out_dir={tmp_path / s}", f"split={s}"]))
+             for s in ("val", "test", "val+test")}
+    pooled = combine([parts["val"], parts["test"]])
+    assert pooled["n_designs"] == parts["val+test"]["n_designs"] == 2
+    for key in ("max_rel_error", "mean_rel_error"):
+        for stat in ("median", "p95", "worst"):
+            assert pooled[key][stat] == pytest.approx(parts["val+test"][key][stat])
+    assert pooled["speedup"] == pytest.approx(pooled["fea_s_per_episode"] / pooled["rollout_ms_per_design"] * 1e3)
+    with pytest.raises(ValueError, match="more than once"):
+        combine([parts["val"], parts["val+test"]])
+    with pytest.raises(ValueError, match="differ in 'checkpoint'"):
+        combine([parts["val"], {**parts["test"], "checkpoint": "other.pt"}])
+    with pytest.raises(ValueError, match="at least 2"):
+        combine([parts["val"]])
+    subprocess.run([sys.executable, "-m", "learn.combine", f"reports=[{tmp_path / 'val'},{tmp_path / 'test'}]",
+                    f"out_dir={tmp_path / 'pooled'}"], cwd=Path(__file__).resolve().parent.parent, check=True,
+                   capture_output=True)
+    on_disk = json.loads((tmp_path / "pooled" / "report.json").read_text())
+    assert on_disk["n_designs"] == 2 and len(on_disk["sources"]) == 2 and (tmp_path / "pooled" / "report.md").exists()
+
+
 @pytest.mark.parametrize("model_name", ["single_gn", "double_gn", "epd"])
 def test_every_model_config_composes_and_trains(data_dir, tmp_path, model_name):
     cfg = cfg_for("train", [f"model={model_name}"] + tiny(data_dir, tmp_path, "epochs=1", "rollout_horizon=3",

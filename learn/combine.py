@@ -1,0 +1,86 @@
+"""Pool learn.evaluate reports of one model over several data sets into one: `.venv/bin/python -m learn.combine
+'reports=[reports/a,reports/b]' out_dir=reports/ab` (conf/combine.yaml).
+
+The error distributions (median, p95, worst; overall and per design family) are recomputed over the union of the
+reports' designs, which is what a median over two held-out sets means; timings and the FEA time are the
+design-weighted means of the sources'. Every source must come from the same checkpoint with the same symmetry
+averaging, and no design may appear twice. Writes report.json (learn.evaluate's schema plus `sources`) and report.md.
+"""
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import hydra
+import numpy as np
+from omegaconf import DictConfig
+
+from data_schema import atomic
+from learn.evaluate import distribution, finite_or_null, markdown, with_families
+
+log = logging.getLogger(__name__)
+WEIGHTED = ("rollout_ms_per_design", "rollout_ms_per_design_eager", "rollout_ms_per_design_batched",
+            "fea_s_per_episode")
+SAME = ("checkpoint", "model", "threads", "steps")
+
+
+def read_report(path: str | Path) -> dict:
+    path = Path(path)
+    path = path / "report.json" if path.is_dir() else path
+    if not path.exists():
+        raise FileNotFoundError(f"reports: {path} does not exist (a learn.evaluate out_dir or its report.json)")
+    return json.loads(path.read_text())
+
+
+def combine(reports: list[dict]) -> dict:
+    """One report over the union of the designs of `reports` (learn.evaluate report dicts)."""
+    if len(reports) < 2:
+        raise ValueError(f"reports: {len(reports)} given; pooling needs at least 2")
+    for key in SAME:
+        values = {json.dumps(r.get(key), sort_keys=True) for r in reports}
+        if len(values) > 1:
+            raise ValueError(f"reports differ in {key!r} ({sorted(values)}): pool only one model's reports")
+    designs = [{**d, "data_dir": r["data_dir"]} for r in reports for d in r["designs"]]
+    keys = [(d["data_dir"], d["name"]) for d in designs]
+    twice = sorted({k for k in keys if keys.count(k) > 1})
+    if twice:
+        raise ValueError(f"reports: designs appear more than once: {twice[:5]}")
+    weights = np.array([r["n_designs"] for r in reports], dtype=float)
+    mean = lambda key: float(np.average([np.nan if r.get(key) is None else r[key] for r in reports],  # noqa: E731
+                                        weights=weights))
+    fams = [d["family"] for d in designs]
+    out = {
+        "n_designs": len(designs),
+        "max_rel_error": with_families([d["max_rel_error"] for d in designs], fams),
+        "mean_rel_error": with_families([d["mean_rel_error"] for d in designs], fams),
+        "representation_floor": distribution([d["representation_floor"] for d in designs]),
+        "input_floor": distribution([d["input_floor"] for d in designs]),
+        **{key: mean(key) for key in WEIGHTED},
+        "n_invalid": int(sum(not d["valid"] for d in designs)),
+        **{key: reports[0].get(key) for key in SAME},
+        "split": " + ".join(f"{r['data_dir']}:{r['split']}" for r in reports),
+        "data_dir": ", ".join(r["data_dir"] for r in reports),
+        "n_parameters": reports[0].get("n_parameters"),
+        "timing": "design-weighted means of the sources' timings (learn.evaluate: " + reports[0].get("timing", "") + ")",
+        "sources": [{"data_dir": r["data_dir"], "split": r["split"], "n_designs": r["n_designs"],
+                     "rollout_ms_per_design": r["rollout_ms_per_design"]} for r in reports],
+        "designs": designs,
+    }
+    out["speedup"] = out["fea_s_per_episode"] / out["rollout_ms_per_design"] * 1e3
+    out["speedup_batched"] = out["fea_s_per_episode"] / out["rollout_ms_per_design_batched"] * 1e3
+    return out
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="combine")
+def main(cfg: DictConfig) -> None:
+    report = combine([read_report(p) for p in cfg.reports])
+    out_dir = Path(cfg.out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    atomic.write_text(out_dir / "report.json", json.dumps(finite_or_null(report), indent=1, allow_nan=False))
+    atomic.write_text(out_dir / "report.md", markdown(report))
+    log.info("\n%s", markdown(report, with_designs=False))
+
+
+if __name__ == "__main__":
+    main()
