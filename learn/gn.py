@@ -40,6 +40,20 @@ def to_rows(u: torch.Tensor, graph: torch.Tensor | None, n: int) -> torch.Tensor
     return u.expand(*u.shape[:-2], n, u.shape[-1]) if graph is None else u.index_select(-2, graph)
 
 
+def update_inputs(design: nn.Module | None, joints: torch.Tensor, beams: torch.Tensor, to_joints: torch.Tensor,
+                  to_beams: torch.Tensor, g: GraphIndex) -> tuple[torch.Tensor, torch.Tensor]:
+    """The update MLPs' inputs cat(X_joint, sum of I_joint) and cat(X_beam, sum of I_beam); with a `design` MLP
+    (graph_nets' global attribute) also the design-wide vector u = design(mean of I_joint over the design's joints,
+    mean of I_beam over its beams), appended to every joint's and beam's row."""
+    joint_in, beam_in = [joints, to_joints], [beams, to_beams]
+    if design is not None:
+        u = design(torch.cat([design_means(to_joints, g.joint_graph, g.n_graphs),
+                              design_means(to_beams, g.beam_graph, g.n_graphs)], -1))
+        joint_in.append(to_rows(u, g.joint_graph, joints.shape[-2]))
+        beam_in.append(to_rows(u, g.beam_graph, beams.shape[-2]))
+    return torch.cat(joint_in, -1), torch.cat(beam_in, -1)
+
+
 class GNBlock(nn.Module):
     """The thesis' GN block (its Figure 34): f_I-joint and f_I-beam see cat(X_beam, X_sender, X_receiver, X_edge)
     of each directed edge; f_U-beam sees cat(X_beam, sum of I_beam), f_U-joint cat(X_joint, sum of I_joint).
@@ -87,13 +101,8 @@ class GNBlock(nn.Module):
         to_joint_edges, to_beam_edges = self.interactions(joints, beams, edges, g)  # [..., E, latent] each
         to_joints = sum_to(to_joint_edges, g.receivers, joints.shape[-2])  # [..., J, latent]
         to_beams = sum_to(to_beam_edges, g.edge_beam, beams.shape[-2])  # [..., B, latent]
-        joint_in, beam_in = [joints, to_joints], [beams, to_beams]
-        if self.design is not None:  # the design-wide vector u, appended to every joint's and beam's update input
-            u = self.design(torch.cat([design_means(to_joints, g.joint_graph, g.n_graphs),
-                                       design_means(to_beams, g.beam_graph, g.n_graphs)], -1))
-            joint_in.append(to_rows(u, g.joint_graph, joints.shape[-2]))
-            beam_in.append(to_rows(u, g.beam_graph, beams.shape[-2]))
-        return (self.joint_update(torch.cat(joint_in, dim=-1)), self.beam_update(torch.cat(beam_in, dim=-1)))
+        joint_in, beam_in = update_inputs(self.design, joints, beams, to_joints, to_beams, g)
+        return self.joint_update(joint_in), self.beam_update(beam_in)
 
 
 class ProcessorBlock(nn.Module):
@@ -118,10 +127,5 @@ class ProcessorBlock(nn.Module):
                                              joints.index_select(-2, g.receivers)], -1))
         to_joints = sum_to(edges, g.receivers, joints.shape[-2])
         to_beams = sum_to(edges, g.edge_beam, beams.shape[-2])
-        joint_in, beam_in = [joints, to_joints], [beams, to_beams]
-        if self.design is not None:
-            u = self.design(torch.cat([design_means(to_joints, g.joint_graph, g.n_graphs),
-                                       design_means(to_beams, g.beam_graph, g.n_graphs)], -1))
-            joint_in.append(to_rows(u, g.joint_graph, joints.shape[-2]))
-            beam_in.append(to_rows(u, g.beam_graph, beams.shape[-2]))
-        return joints + self.joint(torch.cat(joint_in, -1)), beams + self.beam(torch.cat(beam_in, -1)), edges
+        joint_in, beam_in = update_inputs(self.design, joints, beams, to_joints, to_beams, g)
+        return joints + self.joint(joint_in), beams + self.beam(beam_in), edges
