@@ -150,6 +150,14 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
         history, best, bad, start = resumed["history"], resumed["best"], resumed["bad_epochs"], resumed["epoch"] + 1
         log.info("resumed from %s at epoch %d", last, start)
     config = OmegaConf.to_container(cfg, resolve=True)
+    if resumed:  # the network is the checkpoint's: record its model settings, not the conf's, and say what differs
+        stored = {k: v for k, v in resumed["model_args"].items() if k != "pca"}
+        asked = model_args(cfg.model)
+        differ = sorted(k for k in asked if k in stored and asked[k] != stored[k])
+        if differ:
+            log.warning("resuming keeps the checkpoint's model; conf model differs in %s (ignored)",
+                        ", ".join(f"{k} (conf {asked[k]!r}, checkpoint {stored[k]!r})" for k in differ))
+        config["model"] = {**config["model"], **{k: stored[k] for k in differ}}
     t0 = time.perf_counter() - (history[-1]["seconds"] if history else 0.0)
 
     def save(path: Path, epoch: int, finished: bool = False, summary: dict | None = None) -> None:

@@ -78,6 +78,13 @@ def test_training_resumes_from_the_last_checkpoint(data_dir, tmp_path):
     summary = train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=5")))
     resumed = checkpoint.load(tmp_path / "last.pt")
     assert summary["epochs_run"] == 5 and [h["epoch"] for h in resumed["history"]] == [0, 1, 2, 3, 4]
+    # resuming with other model settings keeps the checkpoint's network and records its settings, not the conf's
+    resumed["finished"] = False
+    torch.save(resumed, tmp_path / "last.pt")
+    train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=6", "model.global_latent=7")))
+    again = checkpoint.load(tmp_path / "last.pt")
+    assert again["model_args"]["global_latent"] == resumed["model_args"]["global_latent"] != 7
+    assert again["config"]["model"]["global_latent"] == resumed["model_args"]["global_latent"]
 
 
 def test_a_time_limited_run_pauses_and_continues_with_a_larger_limit(data_dir, tmp_path):
