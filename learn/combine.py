@@ -17,7 +17,7 @@ import numpy as np
 from omegaconf import DictConfig
 
 from data_schema import atomic
-from learn.evaluate import distribution, finite_or_null, markdown, with_families
+from learn.evaluate import design_statistics, finite_or_null, markdown
 
 log = logging.getLogger(__name__)
 WEIGHTED = ("rollout_ms_per_design", "rollout_ms_per_design_eager", "rollout_ms_per_design_batched",
@@ -49,13 +49,8 @@ def combine(reports: list[dict]) -> dict:
     weights = np.array([r["n_designs"] for r in reports], dtype=float)
     mean = lambda key: float(np.average([np.nan if r.get(key) is None else r[key] for r in reports],  # noqa: E731
                                         weights=weights))
-    fams = [d["family"] for d in designs]
     out = {
-        "n_designs": len(designs),
-        "max_rel_error": with_families([d["max_rel_error"] for d in designs], fams),
-        "mean_rel_error": with_families([d["mean_rel_error"] for d in designs], fams),
-        "representation_floor": distribution([d["representation_floor"] for d in designs]),
-        "input_floor": distribution([d["input_floor"] for d in designs]),
+        **design_statistics(designs),
         **{key: mean(key) for key in WEIGHTED},
         "n_invalid": int(sum(not d["valid"] for d in designs)),
         **{key: reports[0].get(key) for key in SAME},

@@ -40,6 +40,18 @@ def with_families(values: list[float], families: list[str]) -> dict:
     return out
 
 
+def design_statistics(designs: list[dict]) -> dict:
+    """The error distributions of a report over its per-design entries (overall and per family for the errors)."""
+    fams = [d["family"] for d in designs]
+    return {
+        "n_designs": len(designs),
+        "max_rel_error": with_families([d["max_rel_error"] for d in designs], fams),
+        "mean_rel_error": with_families([d["mean_rel_error"] for d in designs], fams),
+        "representation_floor": distribution([d["representation_floor"] for d in designs]),
+        "input_floor": distribution([d["input_floor"] for d in designs]),
+    }
+
+
 def median_seconds(fn, repeats: int) -> float:
     """Median wall time of fn() over `repeats` calls after one warm-up call."""
     times = []
@@ -128,13 +140,8 @@ def evaluate(cfg: DictConfig) -> dict:
     rollout_s, batched_s = times["compiled"], times["batched"]
     fea_s = float(np.nanmean([f.fea_seconds for f in features])) if any(
         np.isfinite(f.fea_seconds) for f in features) else float("nan")
-    fams = [d["family"] for d in designs]
     report = {
-        "n_designs": len(designs),
-        "max_rel_error": with_families([d["max_rel_error"] for d in designs], fams),
-        "mean_rel_error": with_families([d["mean_rel_error"] for d in designs], fams),
-        "representation_floor": distribution([d["representation_floor"] for d in designs]),
-        "input_floor": distribution([d["input_floor"] for d in designs]),
+        **design_statistics(designs),
         "rollout_ms_per_design": 1e3 * rollout_s,
         "rollout_ms_per_design_eager": 1e3 * times["eager"],
         "rollout_ms_per_design_batched": 1e3 * batched_s,
