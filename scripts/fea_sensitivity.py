@@ -60,11 +60,14 @@ def main() -> None:
     a = p.parse_args()
     if not a.jitter_mm > 0:
         raise SystemExit(f"--jitter-mm={a.jitter_mm}: must be > 0")
+    items = [x.strip() for x in a.episodes.split(",")]
+    if not all(x.isdigit() for x in items):
+        raise SystemExit(f"--episodes={a.episodes!r}: must be comma-separated episode numbers >= 0, e.g. 207,14,101")
     data, out = Path(a.data_dir), Path(a.out)
     solved = out / "episodes"
     solved.mkdir(parents=True, exist_ok=True)
     rows = []
-    for i in (int(x) for x in a.episodes.split(",")):
+    for i in (int(x) for x in items):
         source = episode_path(data, i)
         design_file = data / "designs" / f"episode_{i:05d}.json"
         if not source.exists() or not design_file.exists():
