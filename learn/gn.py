@@ -7,12 +7,22 @@ from torch import nn
 from learn.graph import GraphIndex
 
 
-def mlp(n_in: int, widths: list[int], n_out: int, layer_norm: bool = False) -> nn.Sequential:
-    """ReLU MLP n_in -> widths... -> n_out (linear output, then LayerNorm if asked); pyramid-shaped when widths
-    decrease."""
+ACTIVATIONS = {"relu": nn.ReLU, "silu": nn.SiLU, "gelu": nn.GELU, "tanh": nn.Tanh}
+
+
+def activation_checked(name) -> str:
+    """model.activation: the hidden layers' nonlinearity, one of ACTIVATIONS."""
+    if name not in ACTIVATIONS:
+        raise ValueError(f"model.activation={name!r}: must be one of {sorted(ACTIVATIONS)}")
+    return name
+
+
+def mlp(n_in: int, widths: list[int], n_out: int, layer_norm: bool = False, activation: str = "relu") -> nn.Sequential:
+    """MLP n_in -> widths... -> n_out with `activation` (ACTIVATIONS) after every hidden layer (linear output, then
+    LayerNorm if asked); pyramid-shaped when widths decrease."""
     layers: list[nn.Module] = []
     for w in widths:
-        layers += [nn.Linear(n_in, w), nn.ReLU()]
+        layers += [nn.Linear(n_in, w), ACTIVATIONS[activation_checked(activation)]()]
         n_in = w
     layers.append(nn.Linear(n_in, n_out))
     if layer_norm:
@@ -64,17 +74,18 @@ class GNBlock(nn.Module):
 
     def __init__(self, joint_in: int, beam_in: int, edge_in: int, latent: int, widths: list[int],
                  joint_out: int, beam_out: int, layer_norm: bool = False, latent_out: bool = False,
-                 global_latent: int = 0):
+                 global_latent: int = 0, activation: str = "relu"):
         """layer_norm: LayerNorm after the interaction MLPs, and after the update MLPs too when their output is a
-        latent graph (latent_out) rather than the final update."""
+        latent graph (latent_out) rather than the final update; activation: the MLPs' nonlinearity (mlp)."""
         super().__init__()
         self.pair_split = [beam_in, joint_in, joint_in, edge_in]  # X_beam | X_sender | X_receiver | X_edge
         pair = sum(self.pair_split)
-        self.joint_interaction = mlp(pair, widths, latent, layer_norm)
-        self.beam_interaction = mlp(pair, widths, latent, layer_norm)
-        self.design = mlp(2 * latent, widths, global_latent, layer_norm) if global_latent > 0 else None
-        self.beam_update = mlp(beam_in + latent + global_latent, widths, beam_out, layer_norm and latent_out)
-        self.joint_update = mlp(joint_in + latent + global_latent, widths, joint_out, layer_norm and latent_out)
+        a = activation
+        self.joint_interaction = mlp(pair, widths, latent, layer_norm, a)
+        self.beam_interaction = mlp(pair, widths, latent, layer_norm, a)
+        self.design = mlp(2 * latent, widths, global_latent, layer_norm, a) if global_latent > 0 else None
+        self.beam_update = mlp(beam_in + latent + global_latent, widths, beam_out, layer_norm and latent_out, a)
+        self.joint_update = mlp(joint_in + latent + global_latent, widths, joint_out, layer_norm and latent_out, a)
 
     def interactions(self, joints: torch.Tensor, beams: torch.Tensor, edges: torch.Tensor,
                      g: GraphIndex) -> tuple[torch.Tensor, torch.Tensor]:
@@ -112,12 +123,14 @@ class ProcessorBlock(nn.Module):
     With global_latent > 0 the joint and beam updates also see a design-wide vector from the mean edge sums, as in
     GNBlock."""
 
-    def __init__(self, latent: int, widths: list[int], layer_norm: bool = True, global_latent: int = 0):
+    def __init__(self, latent: int, widths: list[int], layer_norm: bool = True, global_latent: int = 0,
+                 activation: str = "relu"):
         super().__init__()
-        self.edge = mlp(4 * latent, widths, latent, layer_norm)
-        self.design = mlp(2 * latent, widths, global_latent, layer_norm) if global_latent > 0 else None
-        self.joint = mlp(2 * latent + global_latent, widths, latent, layer_norm)
-        self.beam = mlp(2 * latent + global_latent, widths, latent, layer_norm)
+        a = activation
+        self.edge = mlp(4 * latent, widths, latent, layer_norm, a)
+        self.design = mlp(2 * latent, widths, global_latent, layer_norm, a) if global_latent > 0 else None
+        self.joint = mlp(2 * latent + global_latent, widths, latent, layer_norm, a)
+        self.beam = mlp(2 * latent + global_latent, widths, latent, layer_norm, a)
 
     def forward(self, joints: torch.Tensor, beams: torch.Tensor, edges: torch.Tensor,
                 g: GraphIndex) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -9,7 +9,7 @@ import torch
 from torch import nn
 
 from learn import frames, kinematics
-from learn.gn import GNBlock, ProcessorBlock, mlp
+from learn.gn import GNBlock, ProcessorBlock, activation_checked, mlp
 from learn.graph import BEAM, JOINT, Block, GraphIndex
 from learn.pca import Normalizer, TermPCA
 
@@ -22,10 +22,10 @@ class SingleGN(nn.Module):
     """One GN block from the input graph straight to the update dG."""
 
     def __init__(self, joint_in, beam_in, edge_in, joint_out, beam_out, latent: int, widths: list[int],
-                 layer_norm: bool = False, global_latent: int = 0):
+                 layer_norm: bool = False, global_latent: int = 0, activation: str = "relu"):
         super().__init__()
         self.gn = GNBlock(joint_in, beam_in, edge_in, latent, widths, joint_out, beam_out, layer_norm,
-                          global_latent=global_latent)
+                          global_latent=global_latent, activation=activation)
 
     def forward(self, joints, beams, edges, g: GraphIndex):
         return self.gn(joints, beams, edges, g)
@@ -36,15 +36,16 @@ class DoubleGN(nn.Module):
     the chain continues: GN_k sees cat(G, G'_{k-1}), so information travels n_blocks hops per step."""
 
     def __init__(self, joint_in, beam_in, edge_in, joint_out, beam_out, latent: int, widths: list[int],
-                 layer_norm: bool = False, n_blocks: int = 2, global_latent: int = 0):
+                 layer_norm: bool = False, n_blocks: int = 2, global_latent: int = 0, activation: str = "relu"):
         super().__init__()
         assert n_blocks >= 2, "a double GN has at least two blocks"
+        shared = dict(global_latent=global_latent, activation=activation)
         first = GNBlock(joint_in, beam_in, edge_in, latent, widths, latent, latent, layer_norm, latent_out=True,
-                        global_latent=global_latent)
+                        **shared)
         middle = [GNBlock(joint_in + latent, beam_in + latent, edge_in, latent, widths, latent, latent, layer_norm,
-                          latent_out=True, global_latent=global_latent) for _ in range(n_blocks - 2)]
+                          latent_out=True, **shared) for _ in range(n_blocks - 2)]
         last = GNBlock(joint_in + latent, beam_in + latent, edge_in, latent, widths, joint_out, beam_out, layer_norm,
-                       global_latent=global_latent)
+                       **shared)
         self.blocks = nn.ModuleList([first, *middle, last])
 
     def forward(self, joints, beams, edges, g: GraphIndex):
@@ -62,15 +63,16 @@ class EncodeProcessDecode(nn.Module):
     operations to every step, which is what a one-design rollout's time follows (README, session 8)."""
 
     def __init__(self, joint_in, beam_in, edge_in, joint_out, beam_out, latent: int, widths: list[int],
-                 layer_norm: bool = True, n_blocks: int = 6, global_latent: int = 0):
+                 layer_norm: bool = True, n_blocks: int = 6, global_latent: int = 0, activation: str = "relu"):
         super().__init__()
-        self.encode_joint = mlp(joint_in, widths, latent, layer_norm)
-        self.encode_beam = mlp(beam_in, widths, latent, layer_norm)
-        self.encode_edge = mlp(edge_in, widths, latent, layer_norm)
-        self.blocks = nn.ModuleList([ProcessorBlock(latent, widths, layer_norm, global_latent)
+        a = activation
+        self.encode_joint = mlp(joint_in, widths, latent, layer_norm, a)
+        self.encode_beam = mlp(beam_in, widths, latent, layer_norm, a)
+        self.encode_edge = mlp(edge_in, widths, latent, layer_norm, a)
+        self.blocks = nn.ModuleList([ProcessorBlock(latent, widths, layer_norm, global_latent, a)
                                      for _ in range(n_blocks)])
-        self.decode_joint = mlp(latent, widths, joint_out)
-        self.decode_beam = mlp(latent, widths, beam_out)
+        self.decode_joint = mlp(latent, widths, joint_out, activation=a)
+        self.decode_beam = mlp(latent, widths, beam_out, activation=a)
 
     def forward(self, joints, beams, edges, g: GraphIndex):
         hj, hb, he = self.encode_joint(joints), self.encode_beam(beams), self.encode_edge(edges)
@@ -156,6 +158,7 @@ class Simulator(nn.Module):
           bc_position ("reference": the boundary-condition position is the block's reference position relative
           to the fixed joint; "current": its current one),
           global_latent (int >= 0: a design-wide vector per GN block, graph_nets' global; 0 = the thesis),
+          activation (the MLPs' hidden nonlinearity: relu, the thesis' and the default | silu | gelu | tanh),
           frame ("global": features translated to each block's origin, as in the thesis; "local": also rotated
           into each block's own frame, updates predicted there, gravity given per block; implies a current
           bc position), update ("additive": G(t+1) = G(t) + dG, the thesis; "kinematic": geometry updates are
@@ -182,7 +185,8 @@ class Simulator(nn.Module):
         joint_in = sum(self.pca[t].k for t in TERMS[:3]) + extra
         beam_in = sum(self.pca[t].k for t in TERMS[3:]) + extra
         core_args = dict(layer_norm=bool(args.get("layer_norm", False)),
-                         global_latent=global_latent_checked(args.get("global_latent", 0)))
+                         global_latent=global_latent_checked(args.get("global_latent", 0)),
+                         activation=activation_checked(args.get("activation", "relu")))
         if args["core"] not in CORES:
             raise ValueError(f"model.core={args['core']!r}: must be one of {sorted(CORES)}")
         if args["core"] in ("double_gn", "epd"):

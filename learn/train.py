@@ -29,6 +29,7 @@ def model_args(cfg_model: DictConfig) -> dict:
             "bc_position": str(cfg_model.get("bc_position", "reference")),
             "layer_norm": bool(cfg_model.get("layer_norm", False)), "n_blocks": int(cfg_model.get("n_blocks", 2)),
             "global_latent": int(cfg_model.get("global_latent", 0)),
+            "activation": str(cfg_model.get("activation", "relu")),
             "pin_fixed_joint": bool(cfg_model.get("pin_fixed_joint", False)),
             "frame": str(cfg_model.get("frame", "global")), "update": str(cfg_model.get("update", "additive")),
             "rollout_rotations": rollout_rotations_checked(cfg_model.get("rollout_rotations", 1),

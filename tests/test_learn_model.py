@@ -331,3 +331,16 @@ def test_model_core_and_block_count_are_checked(features):
         Simulator.fit({**args, "n_blocks": 0}, data.joint_state, data.beam_state, data.static)
     with pytest.raises(ValueError, match="model.core='gat'"):
         Simulator.fit({**args, "core": "gat"}, data.joint_state, data.beam_state, data.static)
+    with pytest.raises(ValueError, match="model.activation='swish'"):
+        Simulator.fit({**args, "activation": "swish"}, data.joint_state, data.beam_state, data.static)
+
+
+@pytest.mark.parametrize("core", ["double_gn", "epd"])
+def test_model_activation_is_every_hidden_nonlinearity(features, core):
+    data = GraphSet.build(features[:1])
+    model = Simulator.fit({"core": core, "latent": 8, "widths": [16, 8], "time_input": True, "activation": "silu"},
+                          data.joint_state, data.beam_state, data.static)
+    kinds = {type(m) for m in model.modules()}
+    assert torch.nn.SiLU in kinds and torch.nn.ReLU not in kinds
+    j, b = model.step(data.joint_state[:2], data.beam_state[:2], data.static, data.t[:2])
+    assert torch.isfinite(j).all() and torch.isfinite(b).all()
