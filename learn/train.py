@@ -11,6 +11,7 @@ import hydra
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from learn import checkpoint
 from learn.conditions import envelope
@@ -49,9 +50,25 @@ def learning_rate(cfg: DictConfig, epoch: int) -> float:
     return float(cfg.optim.lr) * (float(cfg.optim.lr_drop_factor) if drop else 1.0)
 
 
+def ema_decay_checked(decay) -> float:
+    if isinstance(decay, bool) or not isinstance(decay, (int, float)) or not 0.0 <= decay < 1.0:
+        raise ValueError(f"optim.ema_decay={decay!r}: must be a number in [0, 1) (0 = off)")
+    return float(decay)
+
+
+def weight_average(model: Simulator, decay: float) -> AveragedModel | None:
+    """An exponential moving average of the model's weights, updated after every optimiser step:
+    w_avg <- decay * w_avg + (1 - decay) * w (torch.optim.swa_utils; the PCA and normaliser buffers are the model's,
+    fixed). None when decay is 0 (off)."""
+    if ema_decay_checked(decay) == 0:
+        return None
+    return AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(float(decay)), use_buffers=False)
+
+
 def train_epoch(model: Simulator, opt: torch.optim.Optimizer, train_set: GraphSet, cfg: DictConfig,
-                epoch: int) -> list[float]:
-    """One pass over shuffled mini-batches at the epoch's learning rate; the batch losses."""
+                epoch: int, average: AveragedModel | None = None) -> list[float]:
+    """One pass over shuffled mini-batches at the epoch's learning rate (and the weight average after every step,
+    when there is one); the batch losses."""
     for group in opt.param_groups:
         group["lr"] = learning_rate(cfg, epoch)
     gen = torch.Generator().manual_seed(int(cfg.seed) * 100003 + epoch)
@@ -65,6 +82,8 @@ def train_epoch(model: Simulator, opt: torch.optim.Optimizer, train_set: GraphSe
         if cfg.optim.grad_clip:
             torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.optim.grad_clip)
         opt.step()
+        if average is not None:
+            average.update_parameters(model)
         losses.append(float(loss.detach()))
     return losses
 
@@ -104,6 +123,7 @@ def train(cfg: DictConfig) -> dict:
 
 def _train(cfg: DictConfig, run_dir: Path) -> dict:
     term_retention(retention_of(cfg))  # a bad value stops here, before any data is read
+    ema_decay_checked(cfg.optim.get("ema_decay", 0.0))
     if cfg.get("rollout_gradient", "through") not in ("through", "stop"):
         raise ValueError(f"rollout_gradient={cfg.rollout_gradient!r}: must be through | stop")
     last = run_dir / LAST
@@ -145,6 +165,13 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
     log.info("input floor: the PCA'd geometry inputs rebuild the validation designs' points within %.3g %% of the "
              "design size", 100 * floor)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.optim.lr, weight_decay=cfg.optim.weight_decay)
+    average = weight_average(model, cfg.optim.get("ema_decay", 0.0))
+    if resumed and "trained_state_dict" in resumed:  # state_dict holds the average; the optimiser's weights apart
+        model.load_state_dict(resumed["trained_state_dict"])
+        if average is not None:
+            average.module.load_state_dict(resumed["state_dict"])
+            average.n_averaged.fill_(int(resumed["n_averaged"]))
+    answer = model if average is None else average.module  # what validation, best.pt and rollouts use
     history, best, bad, start = [], math.inf, 0, 0
     if resumed:
         opt.load_state_dict(resumed["optimizer"])
@@ -162,16 +189,18 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
     t0 = time.perf_counter() - (history[-1]["seconds"] if history else 0.0)
 
     def save(path: Path, epoch: int, finished: bool = False, summary: dict | None = None) -> None:
-        checkpoint.save(path, model, optimizer=opt.state_dict(), config=config, split=split, envelope=train_envelope,
-                        epoch=epoch,
-                        best=best, bad_epochs=bad, history=history, finished=finished, summary=summary or {})
+        averaged = {} if average is None else {"trained_state_dict": model.state_dict(),
+                                               "n_averaged": int(average.n_averaged)}
+        checkpoint.save(path, answer, optimizer=opt.state_dict(), config=config, split=split, envelope=train_envelope,
+                        epoch=epoch, best=best, bad_epochs=bad, history=history, finished=finished,
+                        summary=summary or {}, **averaged)
 
     epoch = start - 1
     stop_reason = "epochs"
     for epoch in range(start, int(cfg.epochs)):
-        losses = train_epoch(model, opt, train_set, cfg, epoch)
+        losses = train_epoch(model, opt, train_set, cfg, epoch, average)
         row = {"epoch": epoch, "lr": learning_rate(cfg, epoch), "train_loss": float(np.mean(losses)),
-               **evaluate_split(model, val_set, cfg), "seconds": time.perf_counter() - t0}
+               **evaluate_split(answer, val_set, cfg), "seconds": time.perf_counter() - t0}
         history.append(row)
         if row[cfg.monitor] < best:
             best, bad = row[cfg.monitor], 0

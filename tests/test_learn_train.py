@@ -15,11 +15,11 @@ from data_schema.episode import write_episode
 from data_schema.testing import synthetic_episode
 from learn import checkpoint
 from learn.evaluate import evaluate
-from learn.dataset import augment, load_features
+from learn.dataset import GraphSet, augment, load_features
 from learn.features import rebuild_all_points
 from learn.graph import BEAM
 from learn.rollout import reference, rollout
-from learn.train import train
+from learn.train import evaluate_split, train
 from learn.validity import check
 
 torch.set_num_threads(1)
@@ -296,3 +296,29 @@ def test_diagnose_separates_one_step_from_rollout_error_per_split(trained, tmp_p
     assert (tmp_path / "diagnose.md").exists() and (tmp_path / "diagnose.png").stat().st_size > 0
     with pytest.raises(ValueError, match=r"\['holdout'\] not in"):
         diagnose(cfg_for("diagnose", [f"checkpoint={run / 'best.pt'}", f"out_dir={tmp_path}", "splits=[holdout]"]))
+
+
+def test_a_weight_average_is_what_validation_and_the_checkpoints_answer_with_and_it_resumes(data_dir, tmp_path):
+    train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=2", "optim.ema_decay=0.9", "batch_size=1")))
+    last = checkpoint.load(tmp_path / "last.pt")
+    n = last["n_averaged"]
+    assert n > 2  # one update per optimiser step
+    averaged, trained = last["state_dict"], last["trained_state_dict"]
+    weights = [k for k in averaged if k.startswith("core.")]
+    assert any(not torch.equal(averaged[k], trained[k]) for k in weights)
+    assert all(torch.equal(averaged[k], trained[k]) for k in averaged if k.startswith("pca."))
+    # the history's validation is the average's: re-evaluating the loaded best.pt gives the logged value
+    best = checkpoint.load(tmp_path / "best.pt")
+    val = GraphSet.build([f for f in load_features(sorted(Path(data_dir).glob("*.h5")))
+                          if f.name in best["split"]["val"]])
+    logged = best["history"][best["epoch"]]["val_rollout"]
+    assert evaluate_split(checkpoint.model_from(best), val,
+                          cfg_for("train", tiny(data_dir, tmp_path)))["val_rollout"] == pytest.approx(logged, rel=1e-5)
+    last["finished"] = False
+    torch.save(last, tmp_path / "last.pt")
+    train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=3", "optim.ema_decay=0.9", "batch_size=1")))
+    again = checkpoint.load(tmp_path / "last.pt")
+    assert again["epoch"] == 2 and again["n_averaged"] == 3 * n // 2  # continued, not restarted
+    with pytest.raises(ValueError, match="optim.ema_decay=1.0"):
+        train(cfg_for("train", tiny(data_dir, tmp_path / "bad", "epochs=1", "optim.ema_decay=1.0")))
+    assert not list((tmp_path / "bad").glob("*.pt"))  # refused before anything is written
