@@ -20,9 +20,10 @@ def activation_checked(name) -> str:
 def mlp(n_in: int, widths: list[int], n_out: int, layer_norm: bool = False, activation: str = "relu") -> nn.Sequential:
     """MLP n_in -> widths... -> n_out with `activation` (ACTIVATIONS) after every hidden layer (linear output, then
     LayerNorm if asked); pyramid-shaped when widths decrease."""
+    nonlinearity = ACTIVATIONS[activation_checked(activation)]
     layers: list[nn.Module] = []
     for w in widths:
-        layers += [nn.Linear(n_in, w), ACTIVATIONS[activation_checked(activation)]()]
+        layers += [nn.Linear(n_in, w), nonlinearity()]
         n_in = w
     layers.append(nn.Linear(n_in, n_out))
     if layer_norm:

@@ -158,7 +158,8 @@ class Simulator(nn.Module):
           bc_position ("reference": the boundary-condition position is the block's reference position relative
           to the fixed joint; "current": its current one),
           global_latent (int >= 0: a design-wide vector per GN block, graph_nets' global; 0 = the thesis),
-          activation (the MLPs' hidden nonlinearity: relu, the thesis' and the default | silu | gelu | tanh),
+          activation (the MLPs' hidden nonlinearity: relu, the thesis', and what args without the key get | silu,
+          conf/model's default since session 9 | gelu | tanh),
           frame ("global": features translated to each block's origin, as in the thesis; "local": also rotated
           into each block's own frame, updates predicted there, gravity given per block; implies a current
           bc position), update ("additive": G(t+1) = G(t) + dG, the thesis; "kinematic": geometry updates are
