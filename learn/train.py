@@ -179,9 +179,10 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
         log.info("resumed from %s at epoch %d", last, start)
     config = OmegaConf.to_container(cfg, resolve=True)
     if resumed:  # the network is the checkpoint's: record its model settings, not the conf's, and say what differs
-        stored = {k: v for k, v in resumed["model_args"].items() if k != "pca"}
+        # the checkpoint's settings as the network reads them: a key it predates takes the model's default
+        stored = model_args(OmegaConf.create({k: v for k, v in resumed["model_args"].items() if k != "pca"}))
         asked = model_args(cfg.model)
-        differ = sorted(k for k in asked if k in stored and asked[k] != stored[k])
+        differ = sorted(k for k in asked if asked[k] != stored[k])
         if differ:
             log.warning("resuming keeps the checkpoint's model; conf model differs in %s (ignored)",
                         ", ".join(f"{k} (conf {asked[k]!r}, checkpoint {stored[k]!r})" for k in differ))

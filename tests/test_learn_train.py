@@ -85,6 +85,12 @@ def test_training_resumes_from_the_last_checkpoint(data_dir, tmp_path):
     again = checkpoint.load(tmp_path / "last.pt")
     assert again["model_args"]["global_latent"] == resumed["model_args"]["global_latent"] != 7
     assert again["config"]["model"]["global_latent"] == resumed["model_args"]["global_latent"]
+    # a checkpoint that predates a model key has that key's old default (activation: relu), whatever conf/model says now
+    again["finished"] = False
+    again["model_args"].pop("activation")
+    torch.save(again, tmp_path / "last.pt")
+    train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=7", "model.activation=silu")))
+    assert checkpoint.load(tmp_path / "last.pt")["config"]["model"]["activation"] == "relu"
 
 
 def test_a_time_limited_run_pauses_and_continues_with_a_larger_limit(data_dir, tmp_path):
