@@ -60,6 +60,32 @@ def load(path: str | Path) -> dict:
     return ckpt
 
 
+SPLIT_FILE_SUFFIXES = (".yaml", ".yml", ".json")
+
+
+def split_of(source: str | Path) -> dict[str, list[str]]:
+    """The held-out designs to keep: the split stored in a checkpoint (.pt), or a split file (.yaml / .json,
+    conf/held_out/) that lists episode file names under `val` and `test` (and optionally `train`); episodes it does not
+    list join train (learn.dataset.extend_split). A file outlives the runs and the machine that made it."""
+    path = Path(source)
+    if path.suffix not in SPLIT_FILE_SUFFIXES:
+        return load(path)["split"]
+    from omegaconf import OmegaConf  # yaml is a superset of json
+
+    listed = OmegaConf.to_container(OmegaConf.load(path))
+    if not isinstance(listed, dict) or not {"val", "test"} <= set(listed) or set(listed) - {"train", "val", "test"}:
+        raise ValueError(f"split file {path}: must map val and test (and optionally train) to lists of episode file "
+                         f"names; has {sorted(listed) if isinstance(listed, dict) else type(listed).__name__}")
+    for part, names in listed.items():
+        if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+            raise ValueError(f"split file {path}: {part} must be a list of episode file names")
+    seen = [n for names in listed.values() for n in names]
+    if len(seen) != len(set(seen)):
+        twice = sorted({n for n in seen if seen.count(n) > 1})
+        raise ValueError(f"split file {path}: episodes listed twice: {twice[:5]}")
+    return {"train": [], **listed}
+
+
 def model_from(ckpt: dict) -> Simulator:
     model = Simulator(ckpt["model_args"])
     model.load_state_dict(ckpt["state_dict"])

@@ -1,6 +1,7 @@
 """Episodes on disk -> features, a split by episode, rotation augmentation, and graph sets for batched training."""
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -52,11 +53,11 @@ def split_names(features: list[EpisodeFeatures], fractions: dict, seed: int) -> 
     return out
 
 
-def extend_split(split: dict[str, list[str]], features: list[EpisodeFeatures]) -> dict[str, list[str]]:
-    """An earlier run's split with the episodes it does not list added to train: a grown dataset keeps its
-    held-out designs, so runs on the old and the new data are evaluated on the same ones. Episodes of the old
-    split that are gone are an error."""
-    names = {f.name for f in features}
+def extend_split(split: dict[str, list[str]], names: Iterable[str]) -> dict[str, list[str]]:
+    """An earlier run's split (or a split file's) with the data's episode `names` it does not list added to train:
+    a grown dataset keeps its held-out designs, so runs on the old and the new data are evaluated on the same ones.
+    Episodes of the old split that are gone are an error."""
+    names = set(names)
     missing = sorted(n for s in SPLITS for n in split.get(s, []) if n not in names)
     if missing:
         raise FileNotFoundError(f"split_from lists episodes that are not in the data: {missing[:5]}")

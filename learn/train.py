@@ -138,8 +138,8 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
     if resumed:
         split = resumed["split"]
     elif cfg.get("split_from") or init:  # keep an earlier run's held-out designs; new episodes join train
-        split = extend_split(checkpoint.load(cfg.split_from)["split"] if cfg.get("split_from") else init["split"],
-                             features)
+        split = extend_split(checkpoint.split_of(cfg.split_from) if cfg.get("split_from") else init["split"],
+                             by_name)
     else:
         split = split_names(features, cfg.split, cfg.seed)
     missing = [n for s in split.values() for n in s if n not in by_name]

@@ -3,8 +3,8 @@
 The step from the flat, stress-free design to the first frame (10 % of the load) is a global static problem: the
 network sees only the geometry and the actuator kinds, and every block's motion depends on the whole grid. This
 script trains a fresh simulator (model and optimiser from conf/, any `key=value` override as for `learn.train`) on
-the first `--frames` frames of `--train-designs` training designs of a checkpoint's split (x rotations x mirror)
-and reports, every `--log-every` epochs, the median over training and validation designs of the max point error /
+the first `--frames` frames of `--train-designs` training designs (x rotations x mirror; the held-out designs are
+those of `--split-from`, a split file or a checkpoint) and reports, every `--log-every` epochs, the median over training and validation designs of the max point error /
 design size at the last of those frames, beside the FEA's own motion there. A quick probe (minutes on one core) of
 what limits a model shape before a full training (hours); one row per run is appended to `--out`/first_step.csv.
 
@@ -26,7 +26,7 @@ import torch  # noqa: E402
 from hydra import compose, initialize_config_dir  # noqa: E402
 
 from learn import checkpoint  # noqa: E402
-from learn.dataset import GraphSet, augment, load_features  # noqa: E402
+from learn.dataset import GraphSet, augment, episode_paths, extend_split, load_features  # noqa: E402
 from learn.features import EpisodeFeatures  # noqa: E402
 from learn.metrics import rollout_errors  # noqa: E402
 from learn.model import Simulator  # noqa: E402
@@ -49,7 +49,8 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("overrides", nargs="*", help="conf/train.yaml overrides, e.g. model.n_blocks=4")
     p.add_argument("--data-dir", default="data/ds_default")
-    p.add_argument("--split-from", default="runs/ds_default_double_gn/last.pt", help="checkpoint whose split is used")
+    p.add_argument("--split-from", default="conf/held_out/ds_default.yaml",
+                   help="split file or checkpoint whose held-out designs are kept (the rest of --data-dir is train)")
     p.add_argument("--train-designs", type=int, default=120)
     p.add_argument("--frames", type=int, default=2, help="frames kept from each episode (2 = the first step)")
     p.add_argument("--epochs", type=int, default=61)
@@ -63,12 +64,11 @@ def main() -> None:
     torch.set_num_threads(int(cfg.threads) or 1)
     torch.manual_seed(int(cfg.seed))
 
-    split = checkpoint.load(args.split_from)["split"]
+    try:
+        split = extend_split(checkpoint.split_of(args.split_from), (p.name for p in episode_paths(args.data_dir)))
+    except FileNotFoundError as e:
+        raise SystemExit(f"--data-dir {args.data_dir}, --split-from {args.split_from}: {e}")
     names = {"train": split["train"][:args.train_designs], "val": split["val"]}
-    missing = [n for part in names.values() for n in part if not (Path(args.data_dir) / n).is_file()]
-    if missing:
-        raise SystemExit(f"--data-dir {args.data_dir}: episodes of the split of {args.split_from} are missing: "
-                         f"{missing[:5]}")
     def load(part: str) -> list[EpisodeFeatures]:
         return [first_frames(f, args.frames) for f in load_features([Path(args.data_dir) / n for n in names[part]])]
 

@@ -42,11 +42,11 @@ def test_split_is_by_episode_and_pca_is_fitted_on_train_only(features):
 def test_extend_split_keeps_held_out_episodes_and_adds_new_ones_to_train(features):
     from learn.dataset import extend_split
     old = split_names(features[:4], {"train": 0.5, "val": 0.25, "test": 0.25}, seed=0)
-    new = extend_split(old, features)
+    new = extend_split(old, [f.name for f in features])
     assert new["val"] == old["val"] and new["test"] == old["test"]
     assert sorted(new["train"]) == sorted(old["train"] + [f.name for f in features[4:]])
     with pytest.raises(FileNotFoundError, match="not in the data"):
-        extend_split(old, features[1:])
+        extend_split(old, [f.name for f in features[1:]])
 
 
 def test_pca_keeps_a_rare_flag_column():

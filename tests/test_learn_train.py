@@ -230,6 +230,36 @@ def test_split_from_keeps_an_earlier_runs_held_out_episodes(trained, data_dir, t
     assert new["val"] == old["val"] and new["test"] == old["test"] and sorted(new["train"]) == sorted(old["train"])
 
 
+def test_split_from_a_split_file_keeps_its_held_out_episodes_and_trains_on_the_rest(data_dir, tmp_path):
+    (tmp_path / "held_out.yaml").write_text("val: [ep001.h5]\ntest: [ep003.h5]\n")
+    train(cfg_for("train", tiny(data_dir, tmp_path / "run", "epochs=1", f"split_from={tmp_path / 'held_out.yaml'}")))
+    split = checkpoint.load(tmp_path / "run" / "last.pt")["split"]
+    assert split == {"train": ["ep000.h5", "ep002.h5"], "val": ["ep001.h5"], "test": ["ep003.h5"]}
+    (tmp_path / "gone.json").write_text('{"val": ["ep001.h5"], "test": ["ep009.h5"]}')
+    with pytest.raises(FileNotFoundError, match="ep009.h5"):  # a held-out design missing from the data
+        train(cfg_for("train", tiny(data_dir, tmp_path / "gone", "epochs=1", f"split_from={tmp_path / 'gone.json'}")))
+    assert not (tmp_path / "gone" / "last.pt").exists()
+
+
+@pytest.mark.parametrize("text, message", [
+    ("val: [a.h5]\n", "must map val and test"),
+    ("val: [a.h5]\ntest: [b.h5]\nvalidation: [c.h5]\n", "must map val and test"),
+    ("val: a.h5\ntest: [b.h5]\n", "val must be a list"),
+    ("val: [a.h5]\ntest: [a.h5]\n", "listed twice: \\['a.h5'\\]"),
+])
+def test_a_malformed_split_file_is_refused_naming_the_problem(tmp_path, text, message):
+    (tmp_path / "split.yaml").write_text(text)
+    with pytest.raises(ValueError, match=message):
+        checkpoint.split_of(tmp_path / "split.yaml")
+
+
+def test_the_pinned_ds_default_split_is_26_validation_and_26_test_designs_of_the_first_260():
+    split = checkpoint.split_of(REPO / "conf" / "held_out" / "ds_default.yaml")
+    held_out = split["val"] + split["test"]
+    assert (len(split["val"]), len(split["test"]), len(set(held_out))) == (26, 26, 52)
+    assert all(0 <= int(n.removeprefix("episode_").removesuffix(".h5")) < 260 for n in held_out)
+
+
 def test_init_from_fine_tunes_the_weights_with_the_checkpoints_split_and_statistics(trained, data_dir, tmp_path):
     run, _ = trained
     start = checkpoint.load(run / "best.pt")
