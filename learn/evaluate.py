@@ -15,7 +15,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from data_schema import atomic
-from learn import checkpoint
+from learn import ensemble
 from learn.dataset import GraphSet, episode_paths, load_features
 from learn.features import EpisodeFeatures, rebuild_all_points
 from learn.model import Simulator, static_from
@@ -40,16 +40,28 @@ def with_families(values: list[float], families: list[str]) -> dict:
     return out
 
 
+def rank_correlation(x, y) -> float:
+    """Spearman's rho (ranks, ties broken by order): does x order the designs as y does?"""
+    rx, ry = (np.argsort(np.argsort(np.asarray(v, dtype=np.float64))) for v in (x, y))
+    return float(np.corrcoef(rx, ry)[0, 1]) if len(rx) > 1 else float("nan")
+
+
 def design_statistics(designs: list[dict]) -> dict:
-    """The error distributions of a report over its per-design entries (overall and per family for the errors)."""
+    """The error distributions of a report over its per-design entries (overall and per family for the errors);
+    for an ensemble also its members' spread and how well the spread ranks the designs by error."""
     fams = [d["family"] for d in designs]
-    return {
+    out = {
         "n_designs": len(designs),
         "max_rel_error": with_families([d["max_rel_error"] for d in designs], fams),
         "mean_rel_error": with_families([d["mean_rel_error"] for d in designs], fams),
         "representation_floor": distribution([d["representation_floor"] for d in designs]),
         "input_floor": distribution([d["input_floor"] for d in designs]),
     }
+    spread = [d.get("spread_rel") for d in designs]
+    if designs and all(v is not None for v in spread):
+        out["spread_rel"] = distribution(spread)
+        out["spread_error_spearman"] = rank_correlation(spread, [d["max_rel_error"] for d in designs])
+    return out
 
 
 def median_seconds(fn, repeats: int) -> float:
@@ -108,12 +120,13 @@ def split_paths(split: str, stored: dict[str, list[str]], data_dir: Path, source
 
 def evaluate(cfg: DictConfig) -> dict:
     torch.set_num_threads(int(cfg.threads))
-    ckpt = checkpoint.load(cfg.checkpoint)
-    model = checkpoint.model_from(ckpt).answer_with(cfg.rollout_rotations, cfg.rollout_mirror)
+    sources = ensemble.checkpoint_paths(cfg.checkpoint)
+    model, ckpt = ensemble.load(sources)
+    model.answer_with(cfg.rollout_rotations, cfg.rollout_mirror)
     data_dir = Path(cfg.data_dir or ckpt["config"]["data_dir"])
-    paths = split_paths(cfg.split, ckpt["split"], data_dir, cfg.checkpoint)
+    paths = split_paths(cfg.split, ckpt["split"], data_dir, sources[0])
     if not paths:
-        raise ValueError(f"split {cfg.split!r} of {cfg.checkpoint} is empty")
+        raise ValueError(f"split {cfg.split!r} of {sources[0]} is empty")
     features = load_features(paths)
     out_dir = Path(cfg.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -133,7 +146,8 @@ def evaluate(cfg: DictConfig) -> dict:
             "mean_rel_error_per_frame": (err.mean(axis=1) / f.design_size).tolist(),
             "representation_floor": float(floor.max() / f.design_size),
             "input_floor": float(seen.max() / f.design_size),
-            "fea_s": f.fea_seconds, "valid": verdict.valid, "validity": verdict.as_dict()})
+            "fea_s": f.fea_seconds, "valid": verdict.valid, "validity": verdict.as_dict(),
+            "spread_rel": verdict.max_spread_rel})
         rollouts.append(r)
 
     times = timings(model, features, int(cfg.timing_repeats))
@@ -152,7 +166,7 @@ def evaluate(cfg: DictConfig) -> dict:
         "n_invalid": int(sum(not d["valid"] for d in designs)),
         "threads": int(cfg.threads),
         "steps": int(features[0].n_frames - 1),
-        "checkpoint": str(cfg.checkpoint), "split": cfg.split, "data_dir": str(data_dir),
+        "checkpoint": sources[0] if len(sources) == 1 else sources, "split": cfg.split, "data_dir": str(data_dir),
         "model": {k: v for k, v in model.args.items() if k != "pca"}, "n_parameters": model.n_parameters,
         "timing": "rollout_ms_per_design: median over designs of the median wall time of one design's rollout "
                   "(initial graph -> rebuilt points of every frame), TorchScript-compiled once per model (compile_s), "
@@ -205,6 +219,11 @@ def markdown(report: dict, with_designs: bool = True) -> str:
         f"speed-up {report['speedup']:.3g}x (batched {report['speedup_batched']:.3g}x); "
         f"{report['n_invalid']} rollouts flagged invalid",
     ]
+    if "spread_rel" in report:
+        sp = report["spread_rel"]
+        lines += ["", f"ensemble of {report['model'].get('ensemble_members')}: members' spread / design size "
+                  f"{_pct(sp['median'])} median, {_pct(sp['p95'])} p95, {_pct(sp['worst'])} worst; Spearman with the "
+                  f"max error {report['spread_error_spearman']:.2f}"]
     if with_designs:
         lines += ["", "| design | family | size mm | max err | mean err | floor | valid |", "|---|---|---|---|---|---|---|"]
         for d in sorted(report["designs"], key=lambda d: d["max_rel_error"]):

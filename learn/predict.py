@@ -27,7 +27,7 @@ from omegaconf import DictConfig, OmegaConf
 from data_schema import atomic
 from data_schema.episode import read_episode
 from data_schema.view import write_series
-from learn import checkpoint
+from learn import ensemble
 from learn.features import extract
 from learn.plots import equal_axes
 from learn.rollout import Rollout, rollout
@@ -86,8 +86,9 @@ def predict(cfg: DictConfig) -> dict:
     steps = int(cfg.steps)
     if steps < 1:
         raise ValueError(f"steps={steps}: must be >= 1 (the training episodes have 10)")
-    ckpt = checkpoint.load(cfg.checkpoint)
-    model = checkpoint.model_from(ckpt).answer_with(cfg.rollout_rotations, cfg.rollout_mirror)
+    sources = ensemble.checkpoint_paths(cfg.checkpoint)
+    model, ckpt = ensemble.load(sources)
+    model.answer_with(cfg.rollout_rotations, cfg.rollout_mirror)
     episode = Path(cfg.episode)
     f = extract(read_episode(episode), name=episode.name)
     start = time.perf_counter()
@@ -97,7 +98,7 @@ def predict(cfg: DictConfig) -> dict:
     out_dir = Path(cfg.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     result = {
-        "episode": str(episode), "checkpoint": str(cfg.checkpoint), "steps": steps, "t": r.t.tolist(),
+        "episode": str(episode), "checkpoint": sources[0] if len(sources) == 1 else sources, "steps": steps, "t": r.t.tolist(),
         "design_size_mm": f.design_size, "valid": verdict.valid, "validity": verdict.as_dict(),
         "rollout_ms": rollout_ms, "threads": int(cfg.threads),
         "timing": "rollout_ms: one eager rollout (initial graph -> rebuilt points of every frame), first call; "

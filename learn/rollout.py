@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from learn.ensemble import Ensemble, members_of, stack_mean
 from learn.features import EpisodeFeatures, extract, rebuild_all_points
 from learn.graph import BEAM, JOINT, GraphIndex
 from learn.model import Simulator, Static, static_from
@@ -44,7 +45,9 @@ def answer_unroll(model: Simulator, joint_state: torch.Tensor, beam_state: torch
     with model.rollout_mirror (EpisodeFeatures.mirrored) -- every copy mapped back and the states averaged. The
     group average makes the answer exactly equivariant to those rotations (and the mirror), which the network
     alone is only approximately (it learned them from augmentation, or not at all); training and its validation
-    use the network alone (unroll)."""
+    use the network alone (unroll). An Ensemble answers with the mean of its members' answers, frame by frame."""
+    if isinstance(model, Ensemble):
+        return stack_mean([answer_unroll(m, joint_state, beam_state, static, t) for m in model.members])
     n, mirror = model.rollout_rotations, model.rollout_mirror
     if n <= 1 and not mirror:
         return unroll(model, joint_state, beam_state, static, t)
@@ -127,6 +130,7 @@ class Rollout:
     point_nodes: np.ndarray  # [P] FEA node id each point stands for
     origin: np.ndarray  # [3] translation between the graphs' frame and the episode's coordinates
     features: EpisodeFeatures  # the source, for its incidence, boundary conditions and FEA reference
+    member_points: np.ndarray | None = None  # [M, F, P, 3] each ensemble member's own answer (None: one model)
 
     @property
     def n_frames(self) -> int:
@@ -154,12 +158,19 @@ def rollout(model: Simulator, source, steps: int = 10, t: np.ndarray | None = No
         t = f.t if len(f.t) == steps + 1 else np.linspace(0.0, 1.0, steps + 1)
     t = np.asarray(t, dtype=np.float64)
     static = static_from(f.joint_bc, f.beam_bc, f.incidence)
+    inputs = (torch.as_tensor(f.joint_state[0]), torch.as_tensor(f.beam_state[0]), static,
+              torch.as_tensor(t, dtype=torch.float32))
+    member_points = None
     with torch.inference_mode():
-        js, bs = answer_unroll(model, torch.as_tensor(f.joint_state[0]), torch.as_tensor(f.beam_state[0]), static,
-                               torch.as_tensor(t, dtype=torch.float32))
+        if isinstance(model, Ensemble):  # the members' answers, kept for their spread; the answer is their mean
+            members = [answer_unroll(m, *inputs) for m in model.members]
+            member_points = torch.stack([rebuild_all_points(*m) for m in members]).numpy() + f.origin
+            js, bs = stack_mean(members)
+        else:
+            js, bs = answer_unroll(model, *inputs)
         pts = rebuild_all_points(js, bs)
     return Rollout(t=t, joint_states=js.numpy(), beam_states=bs.numpy(), points=pts.numpy() + f.origin,
-                   point_nodes=f.point_nodes, origin=f.origin, features=f)
+                   point_nodes=f.point_nodes, origin=f.origin, features=f, member_points=member_points)
 
 
 def reference(source) -> Rollout:
@@ -171,13 +182,15 @@ def reference(source) -> Rollout:
                    point_nodes=f.point_nodes, origin=f.origin, features=f)
 
 
-def input_floor(model: Simulator, source) -> np.ndarray:
+def input_floor(model: Simulator | Ensemble, source) -> np.ndarray:
     """[F, P] distance between the points rebuilt from the FEA's features and from the same features as the
     network sees them (each block's geometry through its PCA and back, Simulator.input_geometry): how finely
-    the inputs resolve the shape, a floor for what any network on them can predict."""
+    the inputs resolve the shape, a floor for what any network on them can predict (an ensemble: its coarsest
+    member's)."""
     f = as_features(source)
     static = static_from(f.joint_bc, f.beam_bc, f.incidence)
     with torch.inference_mode():
         js, bs = torch.as_tensor(f.joint_state), torch.as_tensor(f.beam_state)
-        seen = rebuild_all_points(*model.input_geometry(js, bs, static))
-        return (seen - rebuild_all_points(js, bs)).norm(dim=-1).numpy()
+        exact = rebuild_all_points(js, bs)
+        return np.max([(rebuild_all_points(*m.input_geometry(js, bs, static)) - exact).norm(dim=-1).numpy()
+                       for m in members_of(model)], axis=0)

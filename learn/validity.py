@@ -6,7 +6,10 @@ Two symptoms, both measurable without FEA:
 - out of range: a block's PCA coefficients leave the range seen in training (widened by a margin), so the
   networks extrapolate;
 - conditions: the episode's material, residual stress, body force, mesh or design size lie outside those of the
-  training episodes (learn.conditions). The graphs do not carry them, so the other two checks cannot see them.
+  training episodes (learn.conditions). The graphs do not carry them, so the other two checks cannot see them;
+- spread (ensembles only, learn.ensemble): the members disagree about a point by more than a fraction of the
+  design size. Independent trainings err differently where the data leave the answer open; symmetric copies of
+  one network do not (they make the same mistake), so this check needs an ensemble.
 """
 from __future__ import annotations
 
@@ -16,6 +19,7 @@ import numpy as np
 import torch
 
 from learn.conditions import REL_TOL, outside
+from learn.ensemble import Ensemble, member_spread, members_of
 from learn.features import shared_point_pairs
 from learn.model import Simulator, static_from
 from learn.rollout import Rollout
@@ -29,6 +33,8 @@ class Verdict:
     dislocation_per_frame: list[float] = field(default_factory=list)
     out_of_range_fraction: float = 0.0  # of (frame, block) pairs with a coefficient outside the training range
     first_bad_frame: int | None = None
+    max_spread_rel: float | None = None  # ensembles: largest member-to-mean point distance / design size
+    spread_per_frame: list[float] = field(default_factory=list)  # the same per frame
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -42,29 +48,34 @@ def dislocation(r: Rollout) -> np.ndarray:
     return np.linalg.norm(r.points[:, pairs[:, 0]] - r.points[:, pairs[:, 1]], axis=-1).max(axis=1)
 
 
-def out_of_range(model: Simulator, r: Rollout, margin: float) -> np.ndarray:
-    """[F] fraction of blocks with any PCA coefficient outside the training range widened by `margin`."""
+def out_of_range(model: Simulator | Ensemble, r: Rollout, margin: float) -> np.ndarray:
+    """[F] fraction of blocks with any PCA coefficient outside the training range widened by `margin` (an
+    ensemble: outside that of any member)."""
     f = r.features
     static = static_from(f.joint_bc, f.beam_bc, f.incidence)
+    joint_bad = torch.zeros(r.joint_states.shape[:2], dtype=torch.bool)
+    beam_bad = torch.zeros(r.beam_states.shape[:2], dtype=torch.bool)
     with torch.inference_mode():
-        z = model.coefficients(torch.as_tensor(r.joint_states, dtype=torch.float32),
-                               torch.as_tensor(r.beam_states, dtype=torch.float32), static)
-        joint_bad = torch.zeros(r.joint_states.shape[:2], dtype=torch.bool)
-        beam_bad = torch.zeros(r.beam_states.shape[:2], dtype=torch.bool)
-        for term, coeffs in z.items():
-            bad = model.pca[term].outside(coeffs, margin).any(-1) | ~torch.isfinite(coeffs).all(-1)
-            if term.startswith("joint"):
-                joint_bad |= bad
-            else:
-                beam_bad |= bad
+        for member in members_of(model):
+            z = member.coefficients(torch.as_tensor(r.joint_states, dtype=torch.float32),
+                                    torch.as_tensor(r.beam_states, dtype=torch.float32), static)
+            for term, coeffs in z.items():
+                bad = member.pca[term].outside(coeffs, margin).any(-1) | ~torch.isfinite(coeffs).all(-1)
+                if term.startswith("joint"):
+                    joint_bad |= bad
+                else:
+                    beam_bad |= bad
     return torch.cat([joint_bad, beam_bad], 1).float().mean(1).numpy()
 
 
-def check(model: Simulator, r: Rollout, max_dislocation_mm: float = 1.0, range_margin: float = 0.25,
-          max_out_of_range: float = 0.0, envelope: dict | None = None, condition_tolerance: float = REL_TOL) -> Verdict:
+def check(model: Simulator | Ensemble, r: Rollout, max_dislocation_mm: float = 1.0, range_margin: float = 0.25,
+          max_out_of_range: float = 0.0, envelope: dict | None = None, condition_tolerance: float = REL_TOL,
+          max_spread_rel: float | None = None) -> Verdict:
     """Verdict on one rollout; invalid when any frame breaks a threshold, any value is not finite, or the episode's
     conditions (material, residual stress, body force, mesh, design size) lie outside the training `envelope`
-    (stored in the checkpoint by learn.train) by more than `condition_tolerance`, relative."""
+    (stored in the checkpoint by learn.train) by more than `condition_tolerance`, relative. An ensemble's rollout
+    (r.member_points) also reports its members' spread, and is invalid where it exceeds `max_spread_rel` of the
+    design size (None: reported, not judged)."""
     reasons = [f"conditions outside training: {why}"
                for why in outside(r.features.conditions, envelope or {}, condition_tolerance)]
     off_conditions = bool(reasons)
@@ -72,6 +83,15 @@ def check(model: Simulator, r: Rollout, max_dislocation_mm: float = 1.0, range_m
     disl = np.where(finite, dislocation(r), np.inf)
     oor = np.where(finite, out_of_range(model, r, range_margin), 1.0)
     bad = (disl > max_dislocation_mm) | (oor > max_out_of_range) | ~finite
+    spread = None
+    if r.member_points is not None:
+        spread = np.where(finite, member_spread(r.member_points) / r.features.design_size, np.inf)
+        if max_spread_rel is not None:
+            bad |= spread > max_spread_rel
+            if (spread > max_spread_rel).any():
+                k = int(np.argmax(spread > max_spread_rel))
+                reasons.append(f"ensemble members disagree by {100 * spread[k]:.3g} % of the design size at frame "
+                               f"{k} (limit {100 * max_spread_rel:.3g} %)")
     if not finite.all():
         reasons.append(f"non-finite points from frame {int(np.argmin(finite))}")
     if (disl > max_dislocation_mm).any():
@@ -84,4 +104,6 @@ def check(model: Simulator, r: Rollout, max_dislocation_mm: float = 1.0, range_m
                        f"(margin {range_margin} of the range)")
     return Verdict(valid=not bad.any() and not off_conditions, reasons=reasons, max_dislocation_mm=float(disl.max()),
                    dislocation_per_frame=[float(d) for d in disl], out_of_range_fraction=float(oor.max()),
-                   first_bad_frame=0 if off_conditions else int(np.argmax(bad)) if bad.any() else None)
+                   first_bad_frame=0 if off_conditions else int(np.argmax(bad)) if bad.any() else None,
+                   max_spread_rel=None if spread is None else float(spread.max()),
+                   spread_per_frame=[] if spread is None else [float(x) for x in spread])
