@@ -132,7 +132,8 @@ def run_episode(i: int, design: Design, out: Path, cfg: DictConfig, overrides: l
     if proc.returncode == 0 and result.get("status") == "ok":
         return {**record, "status": "ok", "file": str(path), "bytes": path.stat().st_size,
                 "increments": result.get("increments"), "newton": result.get("newton"),
-                "cutbacks": result.get("cutbacks"), "solve_wall_s": result.get("wall_total_s"),
+                "cutbacks": result.get("cutbacks"), "newton_failed": result.get("newton_failed"),
+                "solve_wall_s": result.get("wall_total_s"),
                 "clearance_mm": result.get("clearance_mm")}
     if proc.returncode == EXIT_CONTACT:
         return {**record, "status": "contact", "reason": result.get("reason"),

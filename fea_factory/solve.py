@@ -157,6 +157,7 @@ def main() -> None:
             path = write_episode(cfg.out, ep)
             print(json.dumps({"status": "ok", "out": str(path), "frames": len(frames.t),
                               "increments": stats["increments"], "newton": stats["newton_total"],
+                              "newton_failed": stats["newton_failed"],
                               "cutbacks": stats["cutbacks"], "wall_total_s": round(stats["wall_total_s"], 3),
                               "clearance_mm": stats["clearance_mm"]}))
 

@@ -164,7 +164,8 @@ class GridSolver:
         self.design, self.keyed, self.material, self.scene, self.settings, self.comm = (
             design, mesh, material, scene, settings, comm)
         self.stats = {"wall_mesh_s": 0.0, "wall_jit_s": 0.0, "wall_solve_s": 0.0, "wall_output_s": 0.0,
-                      "increment_t": [], "newton_iterations": [], "cutbacks": 0, "linear_solves": 0}
+                      "increment_t": [], "newton_iterations": [], "cutbacks": 0, "newton_failed": 0,
+                      "linear_solves": 0}
         t0 = time.perf_counter()
         self._build_mesh()
         self.stats["wall_mesh_s"] = time.perf_counter() - t0
@@ -441,6 +442,7 @@ class GridSolver:
                 why = SNES_REASONS.get(reason, f"SNES reason {reason}") if finite else "non-finite displacement"
                 cut += 1
                 self.stats["cutbacks"] += 1
+                self.stats["newton_failed"] += its  # spent on an attempt that is thrown away
                 if cut > s.max_cutbacks and s.stabilize and s.adaptive:
                     # no equilibrium within reach of the last one: an instability (snap-through); cross it
                     # with damped steps and go on from the undamped equilibrium on the other side
