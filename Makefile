@@ -12,7 +12,7 @@ export OMPI_ALLOW_RUN_AS_ROOT=1
 export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset validate bench-fea stability bench-rollout tradeoff train evaluate diagnose predict sweep learned-extremes clean
+.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset reference-data validate bench-fea stability bench-rollout tradeoff train evaluate diagnose predict sweep learned-extremes clean
 
 help:  ## list the targets
 	@grep -E '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-12s %s\n", $$1, $$2}'
@@ -35,6 +35,10 @@ solve-demo:  ## solve one sampled design (NP ranks) into data/demo.h5
 
 dataset:  ## generate N episodes into OUT (JOBS in parallel, NP MPI ranks each); resumable
 	$(PY) -m fea_factory.generate n=$(N) out=$(OUT) jobs=$(JOBS) np=$(NP)
+
+reference-data:  ## the README's learned-simulator data: data/ds_default (400) + data/ds_heldout (50 new designs); resumable; JOBS=2: ~3.5 h
+	$(PY) -m fea_factory.generate n=400 out=data/ds_default jobs=$(JOBS) np=1
+	$(PY) -m fea_factory.generate n=50 start=100000 out=data/ds_heldout jobs=$(JOBS) np=1
 
 validate:  ## validate every episode in OUT
 	$(PY) -m data_schema.validate $(OUT)
