@@ -79,3 +79,13 @@ def test_evaluate_an_ensemble_reports_its_spread_and_refuses_members_with_other_
         evaluate(cfg_for("evaluate", base + [f"checkpoint=[{members[0]},{other / 'last.pt'}]",
                                              f"out_dir={tmp_path / 'bad'}"]))
     assert not (tmp_path / "bad" / "report.json").exists()
+
+
+def test_predict_with_an_ensemble_writes_its_spread_into_the_verdict(members, data_dir, tmp_path):  # noqa: F811
+    from learn.predict import predict
+    name = checkpoint.load(members[0])["split"]["test"][0]
+    result = predict(cfg_for("predict", [f"checkpoint=[{members[0]},{members[1]}]", f"episode={data_dir / name}",
+                                         f"out_dir={tmp_path}", "plots=false"]))
+    on_disk = json.loads((tmp_path / "prediction.json").read_text())
+    assert on_disk["checkpoint"] == [str(p) for p in members] and result["validity"]["max_spread_rel"] > 0
+    assert len(on_disk["validity"]["spread_per_frame"]) == 11 and "max_rel_error" in on_disk
