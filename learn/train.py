@@ -44,10 +44,24 @@ def retention_of(cfg: DictConfig):
     return OmegaConf.to_container(value) if OmegaConf.is_config(value) else value
 
 
+SCHEDULES = ("step", "cosine")
+
+
+def schedule_checked(name) -> str:
+    if name not in SCHEDULES:
+        raise ValueError(f"optim.schedule={name!r}: must be one of {' | '.join(SCHEDULES)}")
+    return name
+
+
 def learning_rate(cfg: DictConfig, epoch: int) -> float:
-    """Thesis schedule: the base rate, times lr_drop_factor from lr_drop_at * epochs on."""
+    """step (the thesis): the base rate, times lr_drop_factor from lr_drop_at * epochs on; cosine: from the base
+    rate down to base * lr_drop_factor along half a cosine over the epochs (lr_drop_at unused)."""
+    base, factor = float(cfg.optim.lr), float(cfg.optim.lr_drop_factor)
+    if schedule_checked(cfg.optim.get("schedule", "step")) == "cosine":
+        done = min(epoch / max(int(cfg.epochs) - 1, 1), 1.0)
+        return base * (factor + (1.0 - factor) * 0.5 * (1.0 + math.cos(math.pi * done)))
     drop = epoch >= int(cfg.optim.lr_drop_at * cfg.epochs)
-    return float(cfg.optim.lr) * (float(cfg.optim.lr_drop_factor) if drop else 1.0)
+    return base * (factor if drop else 1.0)
 
 
 def ema_decay_checked(decay) -> float:
@@ -124,6 +138,7 @@ def train(cfg: DictConfig) -> dict:
 def _train(cfg: DictConfig, run_dir: Path) -> dict:
     term_retention(retention_of(cfg))  # a bad value stops here, before any data is read
     ema_decay_checked(cfg.optim.get("ema_decay", 0.0))
+    schedule_checked(cfg.optim.get("schedule", "step"))
     if cfg.get("rollout_gradient", "through") not in ("through", "stop"):
         raise ValueError(f"rollout_gradient={cfg.rollout_gradient!r}: must be through | stop")
     last = run_dir / LAST

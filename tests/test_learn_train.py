@@ -2,6 +2,7 @@
 import csv
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -358,3 +359,20 @@ def test_a_weight_average_is_what_validation_and_the_checkpoints_answer_with_and
     with pytest.raises(ValueError, match="optim.ema_decay=1.0"):
         train(cfg_for("train", tiny(data_dir, tmp_path / "bad", "epochs=1", "optim.ema_decay=1.0")))
     assert not list((tmp_path / "bad").glob("*.pt"))  # refused before anything is written
+
+
+def test_the_cosine_schedule_falls_from_the_base_rate_to_the_floor_and_an_unknown_one_is_refused(data_dir, tmp_path):
+    from learn.train import learning_rate
+    cosine = cfg_for("train", tiny(data_dir, tmp_path, "epochs=11", "optim.schedule=cosine", "optim.lr=1e-3",
+                                   "optim.lr_drop_factor=0.1"))
+    rates = [learning_rate(cosine, e) for e in range(11)]
+    assert rates[0] == pytest.approx(1e-3) and rates[5] == pytest.approx(5.5e-4) and rates[10] == pytest.approx(1e-4)
+    assert all(a > b for a, b in zip(rates, rates[1:]))
+    step = cfg_for("train", tiny(data_dir, tmp_path, "epochs=10", "optim.lr=1e-3"))  # the thesis' default
+    assert [learning_rate(step, e) for e in range(10)] == pytest.approx([1e-3] * 5 + [1e-4] * 5)
+    train(cfg_for("train", tiny(data_dir, tmp_path / "run", "epochs=3", "optim.schedule=cosine")))
+    logged = [row["lr"] for row in checkpoint.load(tmp_path / "run" / "last.pt")["history"]]
+    assert logged == pytest.approx([1e-3, 5.5e-4, 1e-4])
+    with pytest.raises(ValueError, match=re.escape("optim.schedule='linear': must be one of step | cosine")):
+        train(cfg_for("train", tiny(data_dir, tmp_path / "bad", "epochs=1", "optim.schedule=linear")))
+    assert not (tmp_path / "bad" / "last.pt").exists()
