@@ -1,5 +1,6 @@
 """Learned rollout wall time vs symmetry copies: `make bench-rollout CKPT=...` -> reports/bench_rollout/.
 
+--checkpoint a.pt,b.pt times an ensemble (learn.ensemble: every member with the setting's copies).
 Per setting (rotations x mirror, learn.rollout.answer_unroll): the TorchScript-compiled rollout of one design from
 frame 0 to the rebuilt points of every frame, on one thread; the median over designs (the checkpoint's test split)
 of the median of --repeats calls (learn.evaluate.median_seconds). Writes rollout.csv, rollout.md (machine, load,
@@ -20,7 +21,7 @@ from data_schema import atomic  # noqa: E402
 
 import torch  # noqa: E402
 
-from learn import checkpoint  # noqa: E402
+from learn import ensemble  # noqa: E402
 from learn.dataset import load_features  # noqa: E402
 from learn.evaluate import median_seconds  # noqa: E402
 from learn.rollout import compile_rollout, graph_inputs  # noqa: E402
@@ -42,7 +43,7 @@ def settings(text: str) -> list[tuple[int, bool]]:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--checkpoint", default="runs/train/best.pt")
+    p.add_argument("--checkpoint", default="runs/train/best.pt", help="a checkpoint, or several joined by ',' (an ensemble)")
     p.add_argument("--data-dir", help="default: the checkpoint's data_dir")
     p.add_argument("--designs", type=int, default=8, help="test designs timed (the first by name)")
     p.add_argument("--repeats", type=int, default=30)
@@ -50,7 +51,9 @@ def main() -> None:
     p.add_argument("--out", default="reports/bench_rollout")
     a = p.parse_args()
     torch.set_num_threads(1)
-    ckpt = checkpoint.load(a.checkpoint)
+    sources = a.checkpoint.split(",")
+    model, ckpt = ensemble.load(sources)
+    members = len(ensemble.members_of(model))
     data_dir = Path(a.data_dir or ckpt["config"]["data_dir"])
     names = sorted(ckpt["split"]["test"])[: a.designs]
     if not names:
@@ -59,10 +62,9 @@ def main() -> None:
     load_before = "/".join(f"{x:.2f}" for x in os.getloadavg())
     rows = []
     for n, mirror in settings(a.settings):
-        model = checkpoint.model_from(ckpt).answer_with(n, mirror)
-        compiled = compile_rollout(model, features[0])
+        compiled = compile_rollout(model.answer_with(n, mirror), features[0])
         ms = [1e3 * median_seconds(lambda f=f: compiled(*graph_inputs(f)), a.repeats) for f in features]
-        rows.append({"rotations": n, "mirror": mirror, "copies": n * (2 if mirror else 1),
+        rows.append({"members": members, "rotations": n, "mirror": mirror, "copies": members * n * (2 if mirror else 1),
                      "ms_per_design": float(np.median(ms)), "ms_min": float(np.min(ms)), "ms_max": float(np.max(ms))})
         print(f"rotations {n} mirror {mirror}: {rows[-1]['ms_per_design']:.2f} ms/design", flush=True)
     load_after = "/".join(f"{x:.2f}" for x in os.getloadavg())
@@ -74,8 +76,9 @@ def main() -> None:
              f"Machine: {machine()}; 1 torch thread; load average before/after {load_before} / {load_after}.",
              f"Command: `{' '.join([Path(sys.executable).name, *sys.argv])}`; {len(features)} test designs, "
              f"median of {a.repeats} calls each, then the median over designs.", "",
-             "| rotations | mirror | copies | ms per design (median) | min / max over designs |", "|---|---|---|---|---|"]
-    lines += [f"| {r['rotations']} | {r['mirror']} | {r['copies']} | {r['ms_per_design']:.2f} | "
+             "| members | rotations | mirror | copies | ms per design (median) | min / max over designs |",
+             "|---|---|---|---|---|---|"]
+    lines += [f"| {r['members']} | {r['rotations']} | {r['mirror']} | {r['copies']} | {r['ms_per_design']:.2f} | "
               f"{r['ms_min']:.2f} / {r['ms_max']:.2f} |" for r in rows]
     atomic.write_text(out / "rollout.md", "\n".join(lines) + "\n")
 

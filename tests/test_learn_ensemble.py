@@ -89,3 +89,16 @@ def test_predict_with_an_ensemble_writes_its_spread_into_the_verdict(members, da
     on_disk = json.loads((tmp_path / "prediction.json").read_text())
     assert on_disk["checkpoint"] == [str(p) for p in members] and result["validity"]["max_spread_rel"] > 0
     assert len(on_disk["validity"]["spread_per_frame"]) == 11 and "max_rel_error" in on_disk
+
+
+def test_bench_rollout_times_an_ensemble_with_every_members_copies(members, data_dir, tmp_path):  # noqa: F811
+    import subprocess
+    import sys
+    from pathlib import Path
+    script = Path(__file__).resolve().parents[1] / "scripts" / "bench_rollout.py"
+    r = subprocess.run([sys.executable, str(script), "--checkpoint", f"{members[0]},{members[1]}", "--data-dir",
+                        str(data_dir), "--designs", "1", "--repeats", "1", "--settings", "1:true",
+                        "--out", str(tmp_path)], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    header, row = (tmp_path / "rollout.csv").read_text().splitlines()
+    assert header.startswith("members,rotations,mirror,copies") and row.startswith("2,1,True,4,")

@@ -102,8 +102,8 @@ def test_bench_rollout_writes_a_row_per_setting_and_refuses_a_bad_one(trained, d
     r = subprocess.run(base + ["--settings", "1:false,2:true"], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     rows = (tmp_path / "b" / "rollout.csv").read_text().splitlines()
-    assert rows[0].startswith("rotations,mirror,copies,ms_per_design") and len(rows) == 3
-    assert rows[2].startswith("2,True,4,") and (tmp_path / "b" / "rollout.png").stat().st_size > 0
+    assert rows[0].startswith("members,rotations,mirror,copies,ms_per_design") and len(rows) == 3
+    assert rows[2].startswith("1,2,True,4,") and (tmp_path / "b" / "rollout.png").stat().st_size > 0
     assert "Machine:" in (tmp_path / "b" / "rollout.md").read_text()
     bad = subprocess.run(base + ["--settings", "0:false"], capture_output=True, text=True, timeout=600)
     assert bad.returncode != 0 and "--settings" in bad.stderr
