@@ -32,8 +32,13 @@ class Ensemble(nn.Module):
 
     @property
     def args(self) -> dict:
-        """The first member's model args with the member count (what a report records of the model)."""
-        return {**self.members[0].args, "ensemble_members": len(self.members)}
+        """What a report records of the model: the first member's model args with the member count, and every
+        member's args (PCA sizes aside) when they differ."""
+        plain = [{k: v for k, v in m.args.items() if k != "pca"} for m in self.members]
+        out = {**self.members[0].args, "ensemble_members": len(self.members)}
+        if any(a != plain[0] for a in plain[1:]):
+            out["member_args"] = plain
+        return out
 
     @property
     def n_parameters(self) -> int:

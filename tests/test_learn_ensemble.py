@@ -30,6 +30,10 @@ def test_the_answer_is_the_mean_of_the_members_answers_and_their_spread_is_repor
     assert isinstance(model, ensemble.Ensemble) and first["split"] == checkpoint.load(members[0])["split"]
     singles = [checkpoint.load_model(p) for p in members]
     assert model.n_parameters == sum(m.n_parameters for m in singles) and model.args["ensemble_members"] == 2
+    assert "member_args" not in model.args  # same shape and settings: one set of args says it all
+    model.members[1].answer_with(rollout_mirror=True)
+    assert [a["rollout_mirror"] for a in model.args["member_args"]] == [False, True]
+    model.members[1].answer_with(rollout_mirror=False)
     ep = synthetic_episode(3, 3, 5, 3, 3, frames=11, seed=9)
     r = rollout(model, ep, steps=10)
     parts = [rollout(m, ep, steps=10) for m in singles]
