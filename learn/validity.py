@@ -1,6 +1,6 @@
 """Validity of a learned rollout: flag results that should not be presented as answers.
 
-Two symptoms, both measurable without FEA:
+Symptoms, all measurable without FEA:
 - dislocation: a beam's end cross-section and its joint each rebuild the shared interface nodes; when the two
   predictions drift apart the blocks no longer form one solid;
 - out of range: a block's PCA coefficients leave the range seen in training (widened by a margin), so the
