@@ -98,7 +98,8 @@ def predict(cfg: DictConfig) -> dict:
     out_dir = Path(cfg.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     result = {
-        "episode": str(episode), "checkpoint": sources[0] if len(sources) == 1 else sources, "steps": steps, "t": r.t.tolist(),
+        "episode": str(episode), "checkpoint": sources[0] if len(sources) == 1 else sources, "steps": steps,
+        "t": r.t.tolist(),
         "design_size_mm": f.design_size, "valid": verdict.valid, "validity": verdict.as_dict(),
         "rollout_ms": rollout_ms, "threads": int(cfg.threads),
         "timing": "rollout_ms: one eager rollout (initial graph -> rebuilt points of every frame), first call; "

@@ -43,7 +43,8 @@ def settings(text: str) -> list[tuple[int, bool]]:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--checkpoint", default="runs/train/best.pt", help="a checkpoint, or several joined by ',' (an ensemble)")
+    p.add_argument("--checkpoint", default="runs/train/best.pt",
+                   help="a checkpoint, or several joined by ',' (an ensemble)")
     p.add_argument("--data-dir", help="default: the checkpoint's data_dir")
     p.add_argument("--designs", type=int, default=8, help="test designs timed (the first by name)")
     p.add_argument("--repeats", type=int, default=30)

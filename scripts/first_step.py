@@ -4,8 +4,9 @@ The step from the flat, stress-free design to the first frame (10 % of the load)
 network sees only the geometry and the actuator kinds, and every block's motion depends on the whole grid. This
 script trains a fresh simulator (model and optimiser from conf/, any `key=value` override as for `learn.train`) on
 the first `--frames` frames of `--train-designs` training designs (x rotations x mirror; the held-out designs are
-those of `--split-from`, a split file or a checkpoint) and reports, every `--log-every` epochs, the median over training and validation designs of the max point error /
-design size at the last of those frames, beside the FEA's own motion there. A quick probe (minutes on one core) of
+those of `--split-from`, a split file or a checkpoint) and reports, every `--log-every` epochs, the median over
+training and validation designs of the max point error / design size at the last of those frames, beside the FEA's
+own motion there. A quick probe (minutes on one core) of
 what limits a model shape before a full training (hours); one row per run is appended to `--out`/first_step.csv.
 
     .venv/bin/python scripts/first_step.py --epochs 61 model.n_blocks=4 model.latent=48 'model.widths=[96,48]'
