@@ -55,10 +55,10 @@ class Ensemble(nn.Module):
 
 def checkpoint_paths(value) -> list[str]:
     """conf `checkpoint`: one path, or a list of paths (an ensemble: 'checkpoint=[runs/a/best.pt,runs/b/best.pt]')."""
-    paths = [value] if isinstance(value, (str, Path)) else [str(v) for v in value]
-    if not paths or not all(str(p) for p in paths):
+    paths = [str(v) for v in ([value] if isinstance(value, (str, Path)) else value)]
+    if not paths or not all(paths):
         raise ValueError(f"checkpoint={value!r}: give one checkpoint path or a list of them (an ensemble)")
-    return [str(p) for p in paths]
+    return paths
 
 
 def load(paths: list[str | Path]) -> tuple[Simulator | Ensemble, dict]:

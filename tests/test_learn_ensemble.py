@@ -106,3 +106,9 @@ def test_bench_rollout_times_an_ensemble_with_every_members_copies(members, data
     assert r.returncode == 0, r.stderr[-2000:]
     header, row = (tmp_path / "rollout.csv").read_text().splitlines()
     assert header.startswith("members,rotations,mirror,copies") and row.startswith("2,1,True,4,")
+
+
+@pytest.mark.parametrize("value", ["", [], ["a.pt", ""]])
+def test_an_empty_checkpoint_value_is_refused_naming_the_key(value):
+    with pytest.raises(ValueError, match="checkpoint=.*give one checkpoint path or a list"):
+        ensemble.checkpoint_paths(value)
