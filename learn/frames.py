@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from learn.graph import BEAM, JOINT, Block
+from learn.graph import BEAM, JOINT, Block, GraphIndex
 
 _VOIGT_TO_TENSOR = torch.tensor([[0, 3, 4], [3, 1, 5], [4, 5, 2]])  # xx yy zz xy xz yz -> 3 x 3
 _TENSOR_ROWS, _TENSOR_COLS = torch.tensor([0, 1, 2, 0, 0, 1]), torch.tensor([0, 1, 2, 1, 2, 2])
@@ -26,11 +26,37 @@ def frame(state: torch.Tensor, block: Block) -> torch.Tensor:
     """[..., n, S] states -> [..., n, 3, 3] block frames."""
     g = block.geometry
     if block is JOINT:
-        along = (state[..., g.slice("corner_se")] - state[..., g.slice("corner_sw")]
-                 + state[..., g.slice("corner_ne")] - state[..., g.slice("corner_nw")])
-        return orthonormal(along, state[..., g.slice("extrusion")])
+        return orthonormal(joint_axis(state), state[..., g.slice("extrusion")])
     along = state[..., g.slice("end_center")] - state[..., g.slice("start_center")]
     return orthonormal(along, state[..., g.slice("middle_height")])
+
+
+def joint_axis(state: torch.Tensor) -> torch.Tensor:
+    """[..., n, S] joint states -> [..., n, 3] each joint's W -> E axis (the mean of its two S and N edges)."""
+    g = JOINT.geometry
+    return (state[..., g.slice("corner_se")] - state[..., g.slice("corner_sw")]
+            + state[..., g.slice("corner_ne")] - state[..., g.slice("corner_nw")])
+
+
+def design_frame(joint_state: torch.Tensor, fixed: torch.Tensor, index: GraphIndex) -> tuple[torch.Tensor, torch.Tensor]:
+    """One frame per design, given to every joint [..., J, 3, 3] and beam [..., B, 3, 3]: e3 = +z, e1 = the fixed
+    joint's W -> E axis projected on the xy plane (fixed: [..., J, 1] flags; several fixed joints: their mean axis).
+    The fixed joint is glued to the support, so the frame turns with the design about z and with nothing else:
+    inputs expressed in it are invariant to rotations of the design about z (gravity is along z), exactly."""
+    axis = joint_axis(joint_state) * fixed
+    if index.joint_graph is None:
+        axis = axis.sum(-2, keepdim=True)  # [..., 1, 3]
+    else:
+        axis = axis.new_zeros(*axis.shape[:-2], index.n_graphs, 3).index_add_(-2, index.joint_graph, axis)
+    c, s = axis[..., 0], axis[..., 1]
+    norm = torch.sqrt(c * c + s * s).clamp_min(1e-9)
+    c, s = c / norm, s / norm
+    zero, one = torch.zeros_like(c), torch.ones_like(c)
+    R = torch.stack([torch.stack([c, -s, zero], -1), torch.stack([s, c, zero], -1),
+                     torch.stack([zero, zero, one], -1)], -2)  # [..., G, 3, 3], columns e1, e2, e3
+    if index.joint_graph is None:
+        return (R.expand(*R.shape[:-3], index.n_joints, 3, 3), R.expand(*R.shape[:-3], index.n_beams, 3, 3))
+    return R.index_select(-3, index.joint_graph), R.index_select(-3, index.beam_graph)
 
 
 def rotate_vectors(x: torch.Tensor, R: torch.Tensor, to_local: bool) -> torch.Tensor:

@@ -16,6 +16,7 @@ from learn.pca import Normalizer, TermPCA
 TERMS = ("joint_geometry", "joint_stress", "joint_bc", "beam_geometry", "beam_stress", "beam_bc")
 EDGE_FEATURES = 6  # sender centre and receiver centre relative to the beam's middle centre
 EDGE_FEATURES_LOCAL = 18  # the same in the beam's frame + the two joints' frames relative to the beam's (6 each)
+FRAMES = ("global", "local", "fixed")  # model.frame: the frames features and updates are expressed in
 
 
 class SingleGN(nn.Module):
@@ -162,7 +163,9 @@ class Simulator(nn.Module):
           conf/model's default since session 9 | gelu | tanh),
           frame ("global": features translated to each block's origin, as in the thesis; "local": also rotated
           into each block's own frame, updates predicted there, gravity given per block; implies a current
-          bc position), update ("additive": G(t+1) = G(t) + dG, the thesis; "kinematic": geometry updates are
+          bc position; "fixed": also rotated about z into the design's frame, the fixed joint's in-plane axes
+          (learn.frames.design_frame), updates predicted there: exactly invariant to rotations of the design
+          about z, so the rotation augmentation adds nothing), update ("additive": G(t+1) = G(t) + dG, the thesis; "kinematic": geometry updates are
           predicted in each block's parent frame and placed outward from the fixed joint, learn/kinematics.py;
           stress stays additive), pca ({term: [D, K]} for every name in TERMS)
           -- all plain types, so they are saved in checkpoints.
@@ -171,7 +174,10 @@ class Simulator(nn.Module):
     def __init__(self, args: dict):
         super().__init__()
         self.args = dict(args)
-        self.local = args.get("frame", "global") == "local"
+        if args.get("frame", "global") not in FRAMES:
+            raise ValueError(f"model.frame={args.get('frame')!r}: must be one of {' | '.join(FRAMES)}")
+        self.local = args.get("frame", "global") == "local"  # every block in its own frame
+        self.rotated = args.get("frame", "global") != "global"  # features and updates in frames R (local or fixed)
         self.kinematic = args.get("update", "additive") == "kinematic"
         if args.get("update", "additive") not in ("additive", "kinematic"):
             raise ValueError(f"model.update={args.get('update')!r}: must be additive | kinematic")
@@ -198,10 +204,13 @@ class Simulator(nn.Module):
                                         **core_args)
 
     # ------------------------------------------------------------------------------------------- features
-    def frames(self, joint_state, beam_state):
-        """Block frames [..., J, 3, 3], [..., B, 3, 3] (local mode) or (None, None)."""
-        if not self.local:
+    def frames(self, joint_state, beam_state, static: Static):
+        """Block frames [..., J, 3, 3], [..., B, 3, 3] (frame local: each block's own; fixed: its design's) or
+        (None, None) (frame global)."""
+        if not self.rotated:
             return None, None
+        if not self.local:
+            return frames.design_frame(joint_state, static.joint_bc[..., JOINT.bc.slice("fixed")], static.index)
         return frames.frame(joint_state, JOINT), frames.frame(beam_state, BEAM)
 
     def _block_terms(self, state, bc, block: Block, R) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -213,6 +222,7 @@ class Simulator(nn.Module):
             geometry = frames.rotate_vectors(geometry, R, to_local=True)
             stress = frames.rotate_stresses(stress, R, to_local=True)
             pos = block.bc.slice("position")
+            bc = bc.expand(*R.shape[:-2], bc.shape[-1])  # a reference bc [n, D] turns with each state's frames
             bc = torch.cat([bc[..., :pos.start], frames.rotate_vectors(bc[..., pos], R, to_local=True),
                             bc[..., pos.stop:]], -1)
         return geometry, stress, bc
@@ -220,7 +230,7 @@ class Simulator(nn.Module):
     def raw_terms(self, joint_state, beam_state, static: Static, R=(None, None)) -> dict[str, torch.Tensor]:
         """Every term as the PCA sees it (geometry translated to each block's own origin, in local mode also
         rotated into the block's frame); R: frames from self.frames, computed here when not given."""
-        Rj, Rb = R if R[0] is not None or not self.local else self.frames(joint_state, beam_state)
+        Rj, Rb = R if R[0] is not None or not self.rotated else self.frames(joint_state, beam_state, static)
         jg, js, jbc = self._block_terms(joint_state, static.joint_bc, JOINT, Rj)
         bg, bs, bbc = self._block_terms(beam_state, static.beam_bc, BEAM, Rb)
         return {"joint_geometry": jg, "joint_stress": js, "joint_bc": jbc,
@@ -230,7 +240,7 @@ class Simulator(nn.Module):
         """The states with every block's geometry replaced by what the network sees of it: its local geometry
         through the term's PCA and back (the stress columns are kept). With a PCA that keeps every component this
         is the state itself; the gap is the resolution of the inputs (evaluate reports it as the input floor)."""
-        R = self.frames(joint_state, beam_state)
+        R = self.frames(joint_state, beam_state, static)
         raw = self.raw_terms(joint_state, beam_state, static, R)
         out = []
         for state, block, R_block in ((joint_state, JOINT, R[0]), (beam_state, BEAM, R[1])):
@@ -243,16 +253,19 @@ class Simulator(nn.Module):
             out.append(torch.cat([state[..., :g.start], placed, state[..., g.stop:]], -1))
         return out[0], out[1]
 
-    def edge_features(self, joint_state, beam_state, g: GraphIndex, R=(None, None)) -> torch.Tensor:
+    def edge_features(self, joint_state, beam_state, static: Static, R=(None, None)) -> torch.Tensor:
         """[..., E, De] sender and receiver centres relative to the beam's middle centre (the pair's origin);
-        in local mode expressed in the beam's frame, with the joints' frames relative to the beam's."""
+        with frames expressed in the beam's frame, in local mode with the joints' frames relative to the beam's."""
+        g = static.index
         jc = joint_state[..., JOINT.origin_slice]
         bc = beam_state[..., BEAM.origin_slice].index_select(-2, g.edge_beam)
         rel = torch.cat([jc.index_select(-2, g.senders) - bc, jc.index_select(-2, g.receivers) - bc], -1)
-        if not self.local:
+        if not self.rotated:
             return rel
-        Rj, Rb = R if R[0] is not None else self.frames(joint_state, beam_state)
+        Rj, Rb = R if R[0] is not None else self.frames(joint_state, beam_state, static)
         Re = Rb.index_select(-3, g.edge_beam)
+        if not self.local:
+            return frames.rotate_vectors(rel, Re, to_local=True)
         return torch.cat([frames.rotate_vectors(rel, Re, to_local=True),
                           frames.relative_rotation(Re, Rj.index_select(-3, g.senders)),
                           frames.relative_rotation(Re, Rj.index_select(-3, g.receivers))], -1)
@@ -262,8 +275,8 @@ class Simulator(nn.Module):
 
     def encode(self, joint_state, beam_state, static: Static, t, R=(None, None)):
         """-> network inputs joints [..., J, Dj], beams [..., B, Db], edges [..., E, De]."""
-        if self.local and R[0] is None:
-            R = self.frames(joint_state, beam_state)
+        if self.rotated and R[0] is None:
+            R = self.frames(joint_state, beam_state, static)
         z = self.coefficients(joint_state, beam_state, static, R)
         lead = joint_state.shape[:-2]
         parts_j = [z[k].expand(*lead, *z[k].shape[-2:]) for k in TERMS[:3]]
@@ -276,26 +289,26 @@ class Simulator(nn.Module):
         if self.local:
             parts_j.append(frames.gravity(R[0]))
             parts_b.append(frames.gravity(R[1]))
-        edges = self.edge_norm(self.edge_features(joint_state, beam_state, static.index, R))
+        edges = self.edge_norm(self.edge_features(joint_state, beam_state, static, R))
         return torch.cat(parts_j, -1), torch.cat(parts_b, -1), edges
 
     # ------------------------------------------------------------------------------------------- dynamics
     def forward(self, joint_state, beam_state, static: Static, t, R=(None, None)):
         """Normalised updates dG: [..., J, JOINT.state_size], [..., B, BEAM.state_size] (local mode: in the
         blocks' frames R, which are computed here when not given)."""
-        if self.local and R[0] is None:
-            R = self.frames(joint_state, beam_state)
+        if self.rotated and R[0] is None:
+            R = self.frames(joint_state, beam_state, static)
         return self.core(*self.encode(joint_state, beam_state, static, t, R), static.index)
 
     def step(self, joint_state, beam_state, static: Static, t):
         """G(t+1) = G(t) + dG, in raw units. With pin_fixed_joint the fixed joint's geometry does not move (its
         top face is glued to the support): a boundary condition applied outside the network."""
-        R = self.frames(joint_state, beam_state)
+        R = self.frames(joint_state, beam_state, static)
         dj, db = self(joint_state, beam_state, static, t, R)
         if self.kinematic:
             return self._kinematic_step(joint_state, beam_state, static, dj, db, R)
         dj, db = self.joint_delta.inverse(dj), self.beam_delta.inverse(db)
-        if self.local:
+        if self.rotated:
             dj = frames.rotate_state(dj, JOINT, R[0], to_local=False)
             db = frames.rotate_state(db, BEAM, R[1], to_local=False)
         if self.args.get("pin_fixed_joint", False):
@@ -322,7 +335,7 @@ class Simulator(nn.Module):
         jg, bg = kinematics.place(roots, rel_j, rel_b, tree)
         dsj = self.joint_delta.inverse(dj)[..., JOINT.stress_slice]
         dsb = self.beam_delta.inverse(db)[..., BEAM.stress_slice]
-        if self.local:
+        if self.rotated:
             dsj, dsb = frames.rotate_stresses(dsj, R[0], False), frames.rotate_stresses(dsb, R[1], False)
         js, bs = joint_state[..., JOINT.stress_slice] + dsj, beam_state[..., BEAM.stress_slice] + dsb
         return torch.cat([jg, js], -1), torch.cat([bg, bs], -1)
@@ -332,16 +345,16 @@ class Simulator(nn.Module):
             retention: float | dict = 1.0, delta_floor: float = 0.01) -> "Simulator":
         """A simulator whose PCA and normalisers are fitted on training states [F, J, Dj], [F, B, Db]."""
         probe = cls({**args, "pca": {t: [1, 1] for t in TERMS}})
-        R = probe.frames(joint_state, beam_state)
+        R = probe.frames(joint_state, beam_state, static)
         raw = probe.raw_terms(joint_state, beam_state, static, R)
         keep = term_retention(retention)
         pcas = {t: TermPCA.fit(x.reshape(-1, x.shape[-1]).numpy(), keep[t.split("_", 1)[1]]) for t, x in raw.items()}
         model = cls({**args, "pca": {t: [p.dim, p.k] for t, p in pcas.items()}})
         for t, p in pcas.items():
             model.pca[t].load_state_dict(p.state_dict())
-        edges = probe.edge_features(joint_state, beam_state, static.index, R)
+        edges = probe.edge_features(joint_state, beam_state, static, R)
         dj, db = joint_state.diff(dim=0), beam_state.diff(dim=0)
-        if probe.local:  # updates as the network predicts them: in the frame of the step's start state
+        if probe.rotated:  # updates as the network predicts them: in the frame of the step's start state
             dj = frames.rotate_state(dj, JOINT, R[0][:-1], to_local=True)
             db = frames.rotate_state(db, BEAM, R[1][:-1], to_local=True)
         for name, x, block in (("edge_norm", edges, None), ("joint_delta", dj, JOINT), ("beam_delta", db, BEAM)):

@@ -171,21 +171,54 @@ def test_local_frames_are_orthonormal_and_rotations_invert(features):
         assert torch.allclose(back, state, atol=1e-4)
 
 
-def test_local_frame_simulator_is_equivariant_to_rotations_about_z(features):
-    """Rotating a design about z (through the fixed joint) rotates its predicted next state the same way."""
+@pytest.mark.parametrize("frame", ["local", "fixed"])
+def test_rotated_frame_simulator_is_equivariant_to_rotations_about_z(features, frame):
+    """Rotating a design about z (through the fixed joint) rotates its predicted next state the same way; with the
+    design frame ("fixed") also when the rotated copy shares a batch (one disjoint graph) with the original."""
     from dataclasses import replace
     from learn.symmetry import rotation_z
     f = features[0]
     data = GraphSet.build([f])
-    model = Simulator.fit({"core": "double_gn", "latent": 8, "widths": [16, 8], "frame": "local",
+    torch.manual_seed(0)
+    model = Simulator.fit({"core": "double_gn", "latent": 8, "widths": [16, 8], "frame": frame,
                            "pin_fixed_joint": True}, data.joint_state, data.beam_state, data.static)
     R = rotation_z(1.1)
-    data_r = GraphSet.build([f.rotated(R)])
+    both = GraphSet.build([f, f.rotated(R)])
     with torch.no_grad():
         j, b = model.step(data.joint_state[:3], data.beam_state[:3], data.static, data.t[:3])
-        jr, br = model.step(data_r.joint_state[:3], data_r.beam_state[:3], data_r.static, data_r.t[:3])
+        jb, bb = model.step(both.joint_state[:3], both.beam_state[:3], both.static, both.t[:3])
+    J, B = both.joint_offsets[1], both.beam_offsets[1]
     want = replace(f, joint_state=j.numpy(), beam_state=b.numpy()).rotated(R)
-    assert np.allclose(jr.numpy(), want.joint_state, atol=2e-3) and np.allclose(br.numpy(), want.beam_state, atol=2e-3)
+    scale = np.abs(want.joint_state).max()
+    assert np.abs(jb[:, :J].numpy() - j.numpy()).max() < 1e-5 * scale  # the original, beside its rotated copy
+    assert np.abs(jb[:, J:].numpy() - want.joint_state).max() < 1e-5 * scale
+    assert np.abs(bb[:, B:].numpy() - want.beam_state).max() < 1e-5 * scale
+
+
+def test_design_frame_turns_with_the_fixed_joint_about_z_only(features):
+    """frames.design_frame: one rotation about z per design, the same for all its blocks, turned by R when the
+    design is turned by R."""
+    from learn import frames
+    from learn.symmetry import rotation_z
+    f = features[0]
+    both = GraphSet.build([f, f.rotated(rotation_z(0.7))])
+    fixed = both.static.joint_bc[..., JOINT.bc.slice("fixed")]
+    Rj, Rb = frames.design_frame(both.joint_state[0], fixed, both.index)
+    J, B = both.joint_offsets[1], both.beam_offsets[1]
+    assert Rj.shape == (both.index.n_joints, 3, 3) and Rb.shape == (both.index.n_beams, 3, 3)
+    assert torch.allclose(Rj[:J], Rj[0].expand(J, 3, 3)) and torch.allclose(Rb[:B], Rj[0].expand(B, 3, 3))
+    assert torch.allclose(Rj[J:], Rj[J].expand(len(Rj) - J, 3, 3))
+    assert torch.allclose(Rj[0][2], torch.tensor([0.0, 0.0, 1.0])) and torch.allclose(Rj[0][:, 2], Rj[0][2])
+    assert torch.allclose(Rj[J], torch.as_tensor(rotation_z(0.7), dtype=torch.float32) @ Rj[0], atol=1e-5)
+    single = frames.design_frame(both.joint_state[0, :J], fixed[:J], GraphSet.build([f]).index)[0]
+    assert torch.allclose(single, Rj[:J])
+
+
+def test_unknown_frame_is_refused_with_the_allowed_values():
+    with pytest.raises(ValueError, match="model.frame='body': must be one of global | local | fixed"):
+        Simulator({"core": "single_gn", "latent": 8, "widths": [8], "frame": "body",
+                   "pca": {t: [1, 1] for t in ("joint_geometry", "joint_stress", "joint_bc", "beam_geometry",
+                                               "beam_stress", "beam_bc")}})
 
 
 def test_input_floor_is_zero_with_every_component_and_grows_as_the_pca_drops_some(features):
