@@ -10,9 +10,9 @@ import torch
 
 from data_schema.episode import read_episode
 from learn.features import EpisodeFeatures, extract
-from learn.graph import GraphIndex, disjoint_union
+from learn.graph import BEAM, JOINT, GraphIndex, disjoint_union
 from learn.model import Static
-from learn.symmetry import rotation_angles, rotation_z
+from learn.symmetry import rotation_angles, rotation_z, state_rotation, term_rotation
 
 SPLITS = ("train", "val", "test")
 
@@ -112,10 +112,35 @@ class GraphSet:
     def __len__(self) -> int:
         return len(self.items)
 
-    def batches(self, batch_size: int | None, generator: torch.Generator) -> list["GraphSet"]:
-        """Shuffled mini-batches of items (batch_size None or <= 0: the whole set, batch gradient descent)."""
-        if not batch_size or batch_size <= 0 or batch_size >= len(self.items):
-            return [self]
-        order = torch.randperm(len(self.items), generator=generator).tolist()
-        return [GraphSet.build([self.items[i] for i in order[s:s + batch_size]])
-                for s in range(0, len(order), batch_size)]
+    def batches(self, batch_size: int | None, generator: torch.Generator, rotations: int = 1) -> list["GraphSet"]:
+        """Shuffled mini-batches of items (batch_size None or <= 0: the whole set, batch gradient descent).
+        rotations > 1: every item `rotations` times, the copies turned about z by angles spread over a turn from a
+        random offset per item, drawn from `generator`: new angles at every call (augment draws them once)."""
+        n = len(self.items)
+        copies = max(int(rotations), 1)
+        if not batch_size or batch_size <= 0 or batch_size >= n * copies:
+            batch_size = n * copies
+        order = torch.randperm(n * copies, generator=generator).tolist()
+        if copies == 1:
+            return [GraphSet.build([self.items[i] for i in order[s:s + batch_size]]) for s in range(0, n, batch_size)]
+        offsets = torch.rand(n, generator=generator, dtype=torch.float64).numpy() * 2.0 * np.pi / copies
+        angle = lambda c: offsets[c % n] + 2.0 * np.pi * (c // n) / copies  # noqa: E731  copy c of item c % n
+        return [GraphSet.build([self.items[c % n] for c in chunk]).rotated([angle(c) for c in chunk])
+                for chunk in (order[s:s + batch_size] for s in range(0, len(order), batch_size))]
+
+    def rotated(self, angles) -> "GraphSet":
+        """Every item turned about z (through its fixed joint, the features' origin) by its own angle: states and
+        boundary-condition terms as EpisodeFeatures.rotated turns them, computed on the stacked tensors."""
+        if len(angles) != len(self):
+            raise ValueError(f"{len(angles)} angles for {len(self)} items")
+        out = {}
+        for name, block, offsets in (("joint", JOINT, self.joint_offsets), ("beam", BEAM, self.beam_offsets)):
+            Rs = [rotation_z(a) for a in angles]
+            rows = torch.as_tensor(np.repeat(np.arange(len(self)), np.diff(offsets)))
+            S = torch.as_tensor(np.stack([state_rotation(block, R) for R in Rs]), dtype=torch.float32)[rows]
+            D = torch.as_tensor(np.stack([term_rotation(block.bc, R) for R in Rs]), dtype=torch.float32)[rows]
+            out[name] = torch.einsum("fns,nst->fnt", getattr(self, f"{name}_state"), S)
+            out[f"{name}_bc"] = torch.einsum("ns,nst->nt", getattr(self.static, f"{name}_bc"), D)
+        return GraphSet(items=self.items, t=self.t, joint_state=out["joint"], beam_state=out["beam"],
+                        static=Static(out["joint_bc"], out["beam_bc"], self.static.index),
+                        joint_offsets=self.joint_offsets, beam_offsets=self.beam_offsets)

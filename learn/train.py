@@ -87,7 +87,8 @@ def train_epoch(model: Simulator, opt: torch.optim.Optimizer, train_set: GraphSe
         group["lr"] = learning_rate(cfg, epoch)
     gen = torch.Generator().manual_seed(int(cfg.seed) * 100003 + epoch)
     losses = []
-    for batch in train_set.batches(cfg.batch_size, gen):
+    redrawn = cfg.rotations if cfg.get("rotations_redraw", False) else 1  # else augment turned the set once
+    for batch in train_set.batches(cfg.batch_size, gen, redrawn):
         loss = multistep_loss(model, batch, cfg.rollout_horizon, cfg.noise_std, cfg.stress_weight, gen,
                               geometry=cfg.get("loss_geometry", "columns"),
                               through=cfg.get("rollout_gradient", "through") == "through")
@@ -163,7 +164,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
     log.info("episodes: %s", {s: len(v) for s, v in split.items()})
     train_envelope = envelope([by_name[n].conditions for n in split["train"]])  # physics the graphs do not carry
     train_set = GraphSet.build(augment([by_name[n] for n in split["train"]], cfg.rotations, cfg.seed,
-                                         bool(cfg.mirror)))
+                                       bool(cfg.mirror)))  # what the PCA and normalisers are fitted on
     val_set = GraphSet.build([by_name[n] for n in split["val"] or split["train"]])
 
     torch.manual_seed(cfg.seed)
@@ -175,6 +176,8 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
     else:
         model = Simulator.fit(model_args(cfg.model), train_set.joint_state, train_set.beam_state, train_set.static,
                               retention_of(cfg), cfg.delta_std_floor)
+    if cfg.get("rotations_redraw", False):  # train on the designs as they are, turned per batch (train_epoch)
+        train_set = GraphSet.build(augment([by_name[n] for n in split["train"]], 1, cfg.seed, bool(cfg.mirror)))
     log.info("PCA dims %s; %d parameters", {t: p.k for t, p in model.pca.items()}, model.n_parameters)
     floor = max(float(input_floor(model, f).max() / f.design_size) for f in val_set.items)
     log.info("input floor: the PCA'd geometry inputs rebuild the validation designs' points within %.3g %% of the "

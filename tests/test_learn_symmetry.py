@@ -98,3 +98,19 @@ def test_mirror_averaged_answer_is_mirror_equivariant():
     np.testing.assert_allclose(a.joint_states[0], f.joint_state[0], atol=1e-4)
     with pytest.raises(ValueError, match="rollout_mirror"):
         model.answer_with(None, "yes")
+
+
+def test_a_graph_set_turned_per_item_equals_the_set_of_turned_designs():
+    """GraphSet.rotated (the per-batch rotations of rotations_redraw) turns each item's states and bc terms as
+    EpisodeFeatures.rotated does, item by item; batches with rotations hold every item that many times."""
+    from learn.symmetry import rotation_z
+    fs = [extract(synthetic_episode(3, 3, 5, 3, 3, 5, seed=s), name=f"ep{s}.h5") for s in (1, 2)]
+    angles = [0.4, -2.0]
+    got = GraphSet.build(fs).rotated(angles)
+    want = GraphSet.build([f.rotated(rotation_z(a)) for f, a in zip(fs, angles)])
+    for a, b in ((got.joint_state, want.joint_state), (got.beam_state, want.beam_state),
+                 (got.static.joint_bc, want.static.joint_bc), (got.static.beam_bc, want.static.beam_bc)):
+        assert torch.allclose(a, b, atol=1e-4 * float(b.abs().max()))
+    batches = GraphSet.build(fs).batches(3, torch.Generator().manual_seed(0), rotations=4)
+    assert sorted(len(b) for b in batches) == [2, 3, 3] and sorted(i.name for b in batches for i in b.items) == \
+        ["ep1.h5"] * 4 + ["ep2.h5"] * 4

@@ -205,7 +205,8 @@ def test_every_model_config_composes_and_trains(data_dir, tmp_path, model_name):
     assert train(cfg)["core"] == model_name
 
 
-@pytest.mark.parametrize("option", ["model.update=kinematic", "loss_geometry=points", "rollout_gradient=stop"])
+@pytest.mark.parametrize("option", ["model.update=kinematic", "loss_geometry=points", "rollout_gradient=stop",
+                                    "model.frame=fixed", "rotations_redraw=true"])
 def test_training_options_reduce_the_loss(data_dir, tmp_path, option):
     summary = train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=16", "optim.lr=3e-3", "batch_size=1",
                                           "rollout_horizon=3", option)))
