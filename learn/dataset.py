@@ -1,6 +1,7 @@
 """Episodes on disk -> features, a split by episode, rotation augmentation, and graph sets for batched training."""
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -12,7 +13,7 @@ from data_schema.episode import read_episode
 from learn.features import EpisodeFeatures, extract
 from learn.graph import BEAM, JOINT, GraphIndex, disjoint_union
 from learn.model import Static
-from learn.symmetry import rotation_angles, rotation_z, state_rotation, term_rotation
+from learn.symmetry import ZRotations, rotation_angles, rotation_z, state_rotation, term_rotation
 
 SPLITS = ("train", "val", "test")
 
@@ -78,6 +79,13 @@ def augment(features: list[EpisodeFeatures], rotations: int, seed: int, mirror: 
     return [f.rotated(rotation_z(a)) for f in features for a in rotation_angles(rotations, rng)]
 
 
+@functools.cache
+def z_rotations(block, part: str) -> ZRotations:
+    """Rotations about z of a block's state (part "state") or boundary-condition terms ("bc"), for any angles."""
+    return ZRotations((lambda R: state_rotation(block, R)) if part == "state" else
+                      (lambda R: term_rotation(block.bc, R)))
+
+
 @dataclass
 class GraphSet:
     """Several episodes as one disjoint graph; states [F, J, Dj] / [F, B, Db] (all items share the frame times)."""
@@ -135,10 +143,9 @@ class GraphSet:
             raise ValueError(f"{len(angles)} angles for {len(self)} items")
         out = {}
         for name, block, offsets in (("joint", JOINT, self.joint_offsets), ("beam", BEAM, self.beam_offsets)):
-            Rs = [rotation_z(a) for a in angles]
             rows = torch.as_tensor(np.repeat(np.arange(len(self)), np.diff(offsets)))
-            S = torch.as_tensor(np.stack([state_rotation(block, R) for R in Rs]), dtype=torch.float32)[rows]
-            D = torch.as_tensor(np.stack([term_rotation(block.bc, R) for R in Rs]), dtype=torch.float32)[rows]
+            S, D = (torch.as_tensor(z_rotations(block, part)(angles), dtype=torch.float32)[rows]
+                    for part in ("state", "bc"))
             out[name] = torch.einsum("fns,nst->fnt", getattr(self, f"{name}_state"), S)
             out[f"{name}_bc"] = torch.einsum("ns,nst->nt", getattr(self.static, f"{name}_bc"), D)
         return GraphSet(items=self.items, t=self.t, joint_state=out["joint"], beam_state=out["beam"],
