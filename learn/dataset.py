@@ -126,8 +126,10 @@ class GraphSet:
         random offset per item, drawn from `generator`: new angles at every call (augment draws them once)."""
         n = len(self.items)
         copies = max(int(rotations), 1)
-        if not batch_size or batch_size <= 0 or batch_size >= n * copies:
-            batch_size = n * copies
+        whole = not batch_size or batch_size <= 0 or batch_size >= n * copies
+        if whole and copies == 1:
+            return [self]
+        batch_size = n * copies if whole else batch_size
         order = torch.randperm(n * copies, generator=generator).tolist()
         if copies == 1:
             return [GraphSet.build([self.items[i] for i in order[s:s + batch_size]]) for s in range(0, n, batch_size)]

@@ -38,7 +38,8 @@ def joint_axis(state: torch.Tensor) -> torch.Tensor:
             + state[..., g.slice("corner_ne")] - state[..., g.slice("corner_nw")])
 
 
-def design_frame(joint_state: torch.Tensor, fixed: torch.Tensor, index: GraphIndex) -> tuple[torch.Tensor, torch.Tensor]:
+def design_frame(joint_state: torch.Tensor, fixed: torch.Tensor,
+                 index: GraphIndex) -> tuple[torch.Tensor, torch.Tensor]:
     """One frame per design, given to every joint [..., J, 3, 3] and beam [..., B, 3, 3]: e3 = +z, e1 = the fixed
     joint's W -> E axis projected on the xy plane (fixed: [..., J, 1] flags; several fixed joints: their mean axis).
     The fixed joint is glued to the support, so the frame turns with the design about z and with nothing else:

@@ -165,7 +165,8 @@ class Simulator(nn.Module):
           into each block's own frame, updates predicted there, gravity given per block; implies a current
           bc position; "fixed": also rotated about z into the design's frame, the fixed joint's in-plane axes
           (learn.frames.design_frame), updates predicted there: exactly invariant to rotations of the design
-          about z, so the rotation augmentation adds nothing), update ("additive": G(t+1) = G(t) + dG, the thesis; "kinematic": geometry updates are
+          about z, so the rotation augmentation adds nothing),
+          update ("additive": G(t+1) = G(t) + dG, the thesis; "kinematic": geometry updates are
           predicted in each block's parent frame and placed outward from the fixed joint, learn/kinematics.py;
           stress stays additive), pca ({term: [D, K]} for every name in TERMS)
           -- all plain types, so they are saved in checkpoints.
