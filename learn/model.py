@@ -229,8 +229,8 @@ class Simulator(nn.Module):
         return geometry, stress, bc
 
     def raw_terms(self, joint_state, beam_state, static: Static, R=(None, None)) -> dict[str, torch.Tensor]:
-        """Every term as the PCA sees it (geometry translated to each block's own origin, in local mode also
-        rotated into the block's frame); R: frames from self.frames, computed here when not given."""
+        """Every term as the PCA sees it (geometry translated to each block's own origin, with frame local or fixed
+        also rotated into the block's frame); R: frames from self.frames, computed here when not given."""
         Rj, Rb = R if R[0] is not None or not self.rotated else self.frames(joint_state, beam_state, static)
         jg, js, jbc = self._block_terms(joint_state, static.joint_bc, JOINT, Rj)
         bg, bs, bbc = self._block_terms(beam_state, static.beam_bc, BEAM, Rb)
@@ -295,8 +295,8 @@ class Simulator(nn.Module):
 
     # ------------------------------------------------------------------------------------------- dynamics
     def forward(self, joint_state, beam_state, static: Static, t, R=(None, None)):
-        """Normalised updates dG: [..., J, JOINT.state_size], [..., B, BEAM.state_size] (local mode: in the
-        blocks' frames R, which are computed here when not given)."""
+        """Normalised updates dG: [..., J, JOINT.state_size], [..., B, BEAM.state_size] (frame local or fixed: in
+        the blocks' frames R, which are computed here when not given)."""
         if self.rotated and R[0] is None:
             R = self.frames(joint_state, beam_state, static)
         return self.core(*self.encode(joint_state, beam_state, static, t, R), static.index)
