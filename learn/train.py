@@ -17,7 +17,7 @@ from learn import checkpoint
 from learn.conditions import envelope
 from learn.dataset import GraphSet, augment, episode_paths, extend_split, load_features, split_names
 from learn.metrics import multistep_loss, rollout_errors
-from learn.model import Simulator, rollout_rotations_checked, term_retention
+from learn.model import Simulator, integer_in, rollout_rotations_checked, term_retention
 from learn.rollout import input_floor
 
 log = logging.getLogger(__name__)
@@ -161,6 +161,10 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
     missing = [n for s in split.values() for n in s if n not in by_name]
     if missing:
         raise FileNotFoundError(f"episodes of the checkpoint's split are missing from {cfg.data_dir}: {missing[:5]}")
+    if not resumed and cfg.get("train_designs") is not None:  # a resumed split is already cut
+        keep = integer_in(cfg.train_designs, "train_designs", 1, len(split["train"]),
+                          f"the first of the split's {len(split['train'])} training designs to train on; null: all")
+        split = {**split, "train": split["train"][:keep]}
     log.info("episodes: %s", {s: len(v) for s, v in split.items()})
     train_envelope = envelope([by_name[n].conditions for n in split["train"]])  # physics the graphs do not carry
     train_set = GraphSet.build(augment([by_name[n] for n in split["train"]], cfg.rotations, cfg.seed,

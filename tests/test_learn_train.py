@@ -243,6 +243,18 @@ def test_split_from_a_split_file_keeps_its_held_out_episodes_and_trains_on_the_r
     assert not (tmp_path / "gone" / "last.pt").exists()
 
 
+def test_train_designs_keeps_the_first_n_training_designs_and_the_held_out_ones(data_dir, tmp_path):
+    (tmp_path / "held_out.yaml").write_text("val: [ep001.h5]\ntest: [ep003.h5]\n")
+    pinned = f"split_from={tmp_path / 'held_out.yaml'}"
+    train(cfg_for("train", tiny(data_dir, tmp_path / "run", "epochs=1", pinned, "train_designs=1")))
+    split = checkpoint.load(tmp_path / "run" / "last.pt")["split"]
+    assert split == {"train": ["ep000.h5"], "val": ["ep001.h5"], "test": ["ep003.h5"]}
+    for bad in (0, 3, 1.5):
+        with pytest.raises(ValueError, match=rf"train_designs={bad}: must be an integer in \[1, 2\]"):
+            train(cfg_for("train", tiny(data_dir, tmp_path / f"bad{bad}", "epochs=1", pinned, f"train_designs={bad}")))
+        assert not (tmp_path / f"bad{bad}" / "last.pt").exists()
+
+
 @pytest.mark.parametrize("text, message", [
     ("val: [a.h5]\n", "must map val and test"),
     ("val: [a.h5]\ntest: [b.h5]\nvalidation: [c.h5]\n", "must map val and test"),
