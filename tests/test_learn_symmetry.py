@@ -114,3 +114,6 @@ def test_a_graph_set_turned_per_item_equals_the_set_of_turned_designs():
     batches = GraphSet.build(fs).batches(3, torch.Generator().manual_seed(0), rotations=4)
     assert sorted(len(b) for b in batches) == [2, 3, 3] and sorted(i.name for b in batches for i in b.items) == \
         ["ep1.h5"] * 4 + ["ep2.h5"] * 4
+    first = [b.joint_state[0, b.joint_offsets[k]:b.joint_offsets[k + 1]] for b in batches
+             for k, i in enumerate(b.items) if i.name == "ep1.h5"]  # its four copies, each turned its own way
+    assert all(not torch.allclose(x, y, atol=1e-3) for n, x in enumerate(first) for y in first[n + 1:])
