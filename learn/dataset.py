@@ -68,10 +68,13 @@ def extend_split(split: dict[str, list[str]], names: Iterable[str]) -> dict[str,
     return out
 
 
-def augment(features: list[EpisodeFeatures], rotations: int, seed: int, mirror: bool = False) -> list[EpisodeFeatures]:
-    """Each episode (and, with mirror, its mirror image: EpisodeFeatures.mirrored) rotated about z (through the
-    fixed joint) by `rotations` angles spread over a full turn, with a random offset per episode; rotations <= 1
-    keeps them as they are."""
+def augment(features: list[EpisodeFeatures], rotations: int, seed: int, mirror: bool = False,
+            half_turn: bool = False) -> list[EpisodeFeatures]:
+    """Each episode (with half_turn also labelled from the opposite lattice corner: EpisodeFeatures.half_turned; with
+    mirror, each of those also as its mirror image: EpisodeFeatures.mirrored) rotated about z (through the fixed
+    joint) by `rotations` angles spread over a full turn, with a random offset per episode; rotations <= 1 keeps
+    them as they are."""
+    features = [g for f in features for g in ((f, f.half_turned()) if half_turn else (f,))]
     features = [g for f in features for g in ((f, f.mirrored()) if mirror else (f,))]
     if rotations <= 1:
         return list(features)

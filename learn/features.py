@@ -115,20 +115,37 @@ class EpisodeFeatures:
         the mirrored design (joint corners se <-> nw, beam left <-> right). Exact: material, residual stress and
         gravity are mirror-symmetric, so every field equals the one extracted from the FEA of the mirrored design
         (tests/test_learn_symmetry.py solves one)."""
-        from learn.symmetry import MIRROR, mirror_order, state_mirror, term_mirror
+        from learn.symmetry import MIRROR, MIRROR_RENAME
+        return self._relabelled(MIRROR, MIRROR_RENAME, self.incidence)
 
-        state = lambda x, block: (x.astype(np.float64) @ state_mirror(block)).astype(x.dtype)  # noqa: E731
-        bc = lambda x, block: (x.astype(np.float64) @ term_mirror(block.bc)).astype(x.dtype)  # noqa: E731
+    def half_turned(self) -> "EpisodeFeatures":
+        """The same design, nothing moved, labelled from the opposite corner of its lattice (learn.symmetry
+        HALF_TURN_RENAME): every beam reversed, joint corners turned by half. This is how the factory labels the
+        design turned by half a turn about z, so it is another labelling a sampled design can have; the FEA of the
+        relabelled design gives these features (tests/test_learn_symmetry.py solves one)."""
+        from learn.symmetry import HALF_TURN_RENAME
+        return self._relabelled(np.eye(3), HALF_TURN_RENAME, self.incidence.reversed())
+
+    def _relabelled(self, R: np.ndarray, rename: dict, incidence: Incidence) -> "EpisodeFeatures":
+        """Every field transformed by R about the fixed joint and renamed (learn.symmetry.term_relabel)."""
+        from learn.symmetry import relabel_order, state_matrix, term_relabel
+
+        def state(x, block):
+            M = state_matrix(block, lambda term: term_relabel(term, R, rename))
+            return (x.astype(np.float64) @ M).astype(x.dtype)
+
+        bc = lambda x, block: (x.astype(np.float64) @ term_relabel(block.bc, R, rename)).astype(x.dtype)  # noqa: E731
         J, B = self.incidence.n_joints, self.incidence.n_beams
-        jo, bo = mirror_order([p[0] for p in JOINT_POINTS]), mirror_order([p[0] for p in BEAM_POINTS])
+        jo = relabel_order([p[0] for p in JOINT_POINTS], rename)
+        bo = relabel_order([p[0] for p in BEAM_POINTS], rename)
         order = np.concatenate([(np.arange(J)[:, None] * len(jo) + jo).ravel(),
                                 J * len(jo) + (np.arange(B)[:, None] * len(bo) + bo).ravel()])
         return EpisodeFeatures(
             name=self.name, family=self.family, design_size=self.design_size, fea_seconds=self.fea_seconds,
-            t=self.t, incidence=self.incidence,
+            t=self.t, incidence=incidence,
             joint_state=state(self.joint_state, JOINT), beam_state=state(self.beam_state, BEAM),
-            joint_bc=bc(self.joint_bc, JOINT), beam_bc=bc(self.beam_bc, BEAM), origin=MIRROR @ self.origin,
-            point_nodes=self.point_nodes[order], fea_points=(self.fea_points @ MIRROR.T)[:, order].astype(np.float32),
+            joint_bc=bc(self.joint_bc, JOINT), beam_bc=bc(self.beam_bc, BEAM), origin=R @ self.origin,
+            point_nodes=self.point_nodes[order], fea_points=(self.fea_points @ R.T)[:, order].astype(np.float32),
             conditions=self.conditions)
 
 

@@ -105,32 +105,49 @@ class ZRotations:
 
 
 MIRROR = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # reflection x <-> y through the origin
+# A relabelling moves every field (and rebuilt point) to the name it has in the relabelled design: name parts
+# ("_"-separated) are renamed one by one. Width vectors (half of right edge -> left edge) change sign whenever left
+# and right swap.
 # The mirrored design is labelled like a sampled one: its lattice indices (i, j) swap, so every beam still runs
 # towards +i or +j and the joint axes stay right-handed (i: W -> E side, j: S -> N side). What that relabels:
 # joint corners (i, j) -> (j, i), i.e. se <-> nw (sw, ne stay); a beam's left and right (its j axis points to the
-# left of a -> b), the width vector (half of right edge -> left edge) minus the reflected one. Name parts, both ways.
-MIRROR_SWAPS = (("se", "nw"), ("left", "right"))
-MIRROR_NEGATED = ("_width",)
+# left of a -> b), the width vector minus the reflected one.
+MIRROR_RENAME = {"se": "nw", "nw": "se", "left": "right", "right": "left"}
+# The lattice half-turn: the same design, nothing moved, labelled from the opposite corner of its lattice,
+# (i, j) -> (n_i - 1 - i, n_j - 1 - j), as the factory labels the design turned by half a turn: every beam runs the
+# other way (start <-> end sections, left <-> right, width negated; EpisodeFeatures.half_turned reverses the beams)
+# and every joint's corners turn by half (sw <-> ne, se <-> nw).
+HALF_TURN_RENAME = {"start": "end", "end": "start", "left": "right", "right": "left",
+                    "sw": "ne", "ne": "sw", "se": "nw", "nw": "se"}
+NEGATED = ("_width",)
 
 
-def _mirror_name(name: str) -> str:
-    for a, b in MIRROR_SWAPS:
-        for x, y in ((a, b), (b, a)):
-            if x in name.split("_"):
-                return "_".join(y if part == x else part for part in name.split("_"))
-    return name
+def renamed(name: str, rename: dict[str, str]) -> str:
+    """`name` with every "_"-separated part renamed."""
+    return "_".join(rename.get(part, part) for part in name.split("_"))
+
+
+def term_relabel(term: Term, R: np.ndarray, rename: dict[str, str]) -> np.ndarray:
+    """[size, size] matrix M with relabel(x) = x @ M: every field transformed by R (rotate_term) and moved to the
+    field it becomes in the relabelled design; width vectors negated."""
+    moved = rotate_term(np.eye(term.size), term, R)
+    M = np.zeros_like(moved)
+    for name in term.names():
+        src, dst = term.slice(name), term.slice(renamed(name, rename))
+        sign = -1.0 if any(name.endswith(s) for s in NEGATED) else 1.0
+        M[:, dst] = sign * moved[:, src]
+    return M
+
+
+def relabel_order(names: list[str], rename: dict[str, str]) -> np.ndarray:
+    """[n] index: entry p of the relabelled list is entry order[p] of `names` (point or field names)."""
+    return np.array([names.index(renamed(n, rename)) for n in names])
 
 
 def term_mirror(term: Term) -> np.ndarray:
-    """[size, size] matrix M with mirror(x) = x @ M: every field reflected (MIRROR) and moved to the field it
-    becomes in the mirrored design (MIRROR_SWAPS), width vectors negated; an involution (M @ M = I)."""
-    reflected = rotate_term(np.eye(term.size), term, MIRROR)
-    M = np.zeros_like(reflected)
-    for name in term.names():
-        src, dst = term.slice(name), term.slice(_mirror_name(name))
-        sign = -1.0 if any(name.endswith(s) for s in MIRROR_NEGATED) else 1.0
-        M[:, dst] = sign * reflected[:, src]
-    return M
+    """[size, size] matrix M with mirror(x) = x @ M: every field reflected (MIRROR) and relabelled (MIRROR_RENAME);
+    an involution (M @ M = I)."""
+    return term_relabel(term, MIRROR, MIRROR_RENAME)
 
 
 def state_mirror(block) -> np.ndarray:
@@ -140,5 +157,5 @@ def state_mirror(block) -> np.ndarray:
 
 def mirror_order(names: list[str]) -> np.ndarray:
     """[n] index: entry p of the mirrored list is entry order[p] of `names` (point or field names relabelled by
-    MIRROR_SWAPS)."""
-    return np.array([names.index(_mirror_name(n)) for n in names])
+    MIRROR_RENAME)."""
+    return relabel_order(names, MIRROR_RENAME)

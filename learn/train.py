@@ -24,6 +24,16 @@ log = logging.getLogger(__name__)
 LAST, BEST = "last.pt", "best.pt"
 
 
+def augmented(features: list, cfg, rotations: int | None = None) -> list:
+    """The training designs as conf/train.yaml augments them (learn.dataset.augment): rotations (cfg.rotations
+    unless given), mirror, half_turn."""
+    for key in ("mirror", "half_turn"):
+        if not isinstance(cfg.get(key, False), bool):
+            raise ValueError(f"{key}={cfg.get(key)!r}: must be true or false")
+    return augment(features, cfg.rotations if rotations is None else rotations, cfg.seed, cfg.mirror,
+                   cfg.get("half_turn", False))
+
+
 def model_args(cfg_model: DictConfig) -> dict:
     return {"core": str(cfg_model.core), "latent": int(cfg_model.latent),
             "widths": [int(w) for w in cfg_model.widths], "time_input": bool(cfg_model.time_input),
@@ -167,8 +177,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
         split = {**split, "train": split["train"][:keep]}
     log.info("episodes: %s", {s: len(v) for s, v in split.items()})
     train_envelope = envelope([by_name[n].conditions for n in split["train"]])  # physics the graphs do not carry
-    train_set = GraphSet.build(augment([by_name[n] for n in split["train"]], cfg.rotations, cfg.seed,
-                                       bool(cfg.mirror)))  # what the PCA and normalisers are fitted on
+    train_set = GraphSet.build(augmented([by_name[n] for n in split["train"]], cfg))  # PCA, normalisers fit on it
     val_set = GraphSet.build([by_name[n] for n in split["val"] or split["train"]])
 
     torch.manual_seed(cfg.seed)
@@ -181,7 +190,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
         model = Simulator.fit(model_args(cfg.model), train_set.joint_state, train_set.beam_state, train_set.static,
                               retention_of(cfg), cfg.delta_std_floor)
     if cfg.get("rotations_redraw", False):  # train on the designs as they are, turned per batch (train_epoch)
-        train_set = GraphSet.build(augment([by_name[n] for n in split["train"]], 1, cfg.seed, bool(cfg.mirror)))
+        train_set = GraphSet.build(augmented([by_name[n] for n in split["train"]], cfg, rotations=1))
     log.info("PCA dims %s; %d parameters", {t: p.k for t, p in model.pca.items()}, model.n_parameters)
     floor = max(float(input_floor(model, f).max() / f.design_size) for f in val_set.items)
     log.info("input floor: the PCA'd geometry inputs rebuild the validation designs' points within %.3g %% of the "

@@ -27,11 +27,11 @@ import torch  # noqa: E402
 from hydra import compose, initialize_config_dir  # noqa: E402
 
 from learn import checkpoint  # noqa: E402
-from learn.dataset import GraphSet, augment, episode_paths, extend_split, load_features  # noqa: E402
+from learn.dataset import GraphSet, episode_paths, extend_split, load_features  # noqa: E402
 from learn.features import EpisodeFeatures  # noqa: E402
 from learn.metrics import rollout_errors  # noqa: E402
 from learn.model import Simulator  # noqa: E402
-from learn.train import append_result, model_args, retention_of, train_epoch  # noqa: E402
+from learn.train import augmented, append_result, model_args, retention_of, train_epoch  # noqa: E402
 
 
 def first_frames(f: EpisodeFeatures, frames: int) -> EpisodeFeatures:
@@ -74,7 +74,7 @@ def main() -> None:
         return [first_frames(f, args.frames) for f in load_features([Path(args.data_dir) / n for n in names[part]])]
 
     train, val = load("train"), load("val")
-    train_set = GraphSet.build(augment(train, int(cfg.rotations), int(cfg.seed), bool(cfg.mirror)))
+    train_set = GraphSet.build(augmented(train, cfg))
     train_probe, val_set = GraphSet.build(train[:40]), GraphSet.build(val)
     model = Simulator.fit(model_args(cfg.model), train_set.joint_state, train_set.beam_state, train_set.static,
                           retention_of(cfg), cfg.delta_std_floor)

@@ -24,45 +24,68 @@ ROOT = Path(__file__).resolve().parent.parent
 KINDS = ("up", "down", "passive")
 
 
-def design_3x3(mirrored: bool) -> dict:
-    """A jittered 3x3 design with mixed actuators; mirrored: x <-> y and lattice (i, j) -> (j, i)."""
+def design_3x3(labelling: str = "plain") -> dict:
+    """A jittered 3x3 design with mixed actuators, labelled as the factory labels it (beams run towards +i or +j).
+    mirror: x <-> y and lattice (i, j) -> (j, i); half_turn: the same design, lattice (i, j) -> (2 - i, 2 - j), so
+    every beam runs the other way."""
     rng = np.random.default_rng(7)
     joints, index = [], {}
     for j in range(3):
         for i in range(3):
             index[i, j] = len(joints)
             x, y = 75.0 * i + rng.uniform(-8, 8), 60.0 * j + rng.uniform(-8, 8)
-            joints.append({"ij": [j, i] if mirrored else [i, j], "xy": [y, x] if mirrored else [x, y]})
+            ij, xy = {"plain": ([i, j], [x, y]), "mirror": ([j, i], [y, x]),
+                      "half_turn": ([2 - i, 2 - j], [x, y])}[labelling]
+            joints.append({"ij": ij, "xy": xy})
     beams = [[index[i, j], index[i + 1, j]] for j in range(3) for i in range(2)] + \
             [[index[i, j], index[i, j + 1]] for j in range(2) for i in range(3)]
+    beams = [[b, a] if labelling == "half_turn" else [a, b] for a, b in beams]
     beams = [[a, b, KINDS[n % 3]] for n, (a, b) in enumerate(beams)]
     return {"format": "morphsim.design/1", "joints": joints, "beams": beams, "fixed_joint": index[1, 1],
             "beam_width": 7.2, "thickness": 4.0, "meta": {"family": "random"}}
 
 
-def solved(tmp_path: Path, mirrored: bool):
-    design, out = tmp_path / f"d{int(mirrored)}.json", tmp_path / f"e{int(mirrored)}.h5"
-    design.write_text(json.dumps(design_3x3(mirrored)))
+def solved(tmp_path: Path, labelling: str):
+    design, out = tmp_path / f"d_{labelling}.json", tmp_path / f"e_{labelling}.h5"
+    design.write_text(json.dumps(design_3x3(labelling)))
     r = subprocess.run([sys.executable, "-m", "fea_factory.solve", f"design={design}", f"out={out}", "mesh=coarse"],
                        cwd=ROOT, stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stdout[-1000:] + r.stderr[-2000:]
     return extract(read_episode(out))
 
 
-def test_mirrored_features_are_the_fea_of_the_mirrored_design(tmp_path):
-    """Physics is mirror-symmetric (isotropic material and joint stress, beams printed along/across their axis,
-    gravity along z), so the FEA of the mirrored design equals the mirrored features to round-off, in every frame."""
-    pytest.importorskip("dolfinx")
-    f, g = solved(tmp_path, False), solved(tmp_path, True)
-    m = f.mirrored()
+def assert_same_features(m, g):
+    """Every field of two EpisodeFeatures equal to float32 round-off of their scale."""
     assert g.incidence.n_beams == m.incidence.n_beams and (g.incidence.senders == m.incidence.senders).all()
+    assert (g.incidence.receivers == m.incidence.receivers).all()
     tol = lambda x: 1e-5 * max(1.0, np.abs(x).max())  # noqa: E731  float32 features
     for name in ("joint_state", "beam_state", "joint_bc", "beam_bc", "fea_points"):
         np.testing.assert_allclose(getattr(m, name), getattr(g, name), atol=tol(getattr(g, name)), err_msg=name)
+
+
+@pytest.fixture(scope="module")
+def plain_fea(tmp_path_factory):
+    pytest.importorskip("dolfinx")
+    return solved(tmp_path_factory.mktemp("plain"), "plain")
+
+
+def test_mirrored_features_are_the_fea_of_the_mirrored_design(plain_fea, tmp_path):
+    """Physics is mirror-symmetric (isotropic material and joint stress, beams printed along/across their axis,
+    gravity along z), so the FEA of the mirrored design equals the mirrored features to round-off, in every frame."""
+    f, g = plain_fea, solved(tmp_path, "mirror")
+    assert_same_features(f.mirrored(), g)
     # the plain reflection without relabelling is far off: the labels matter
     swap_xy = [3 * k + c for k in range(BEAM.geometry.size // 3) for c in (1, 0, 2)]
     naive = f.beam_state[..., BEAM.geometry_slice][..., swap_xy]
     assert np.abs(naive - g.beam_state[..., BEAM.geometry_slice]).max() > 1.0
+
+
+def test_half_turned_features_are_the_fea_of_the_design_labelled_from_the_opposite_corner(plain_fea, tmp_path):
+    """Relabelling the lattice from its opposite corner moves nothing, so its FEA is the same solution: every beam
+    reversed, every joint's corners turned by half (EpisodeFeatures.half_turned), to round-off in every frame."""
+    f, g = plain_fea, solved(tmp_path, "half_turn")
+    assert_same_features(f.half_turned(), g)
+    assert np.abs(f.beam_state - g.beam_state).max() > 1.0  # and the labels matter
 
 
 def test_mirror_is_an_involution_and_keeps_points_and_shared_nodes():
@@ -74,6 +97,24 @@ def test_mirror_is_an_involution_and_keeps_points_and_shared_nodes():
     np.testing.assert_allclose(rebuild_all_points(m.joint_state[0].astype(float), m.beam_state[0].astype(float)),
                                m.fea_points[0], atol=1e-4)
     assert len(augment([f], rotations=3, seed=0, mirror=True)) == 6
+
+
+def test_half_turn_is_an_involution_and_keeps_points():
+    f = extract(synthetic_episode(3, 3, 5, 3, 3, frames=3))
+    h = f.half_turned()
+    back = h.half_turned()
+    for name in ("joint_state", "beam_state", "joint_bc", "beam_bc", "fea_points", "point_nodes", "origin"):
+        np.testing.assert_allclose(getattr(back, name), getattr(f, name), atol=1e-5, err_msg=name)
+    assert (back.incidence.senders == f.incidence.senders).all()
+    rebuilt = lambda e: rebuild_all_points(e.joint_state.astype(float), e.beam_state.astype(float))  # noqa: E731
+    np.testing.assert_allclose(rebuilt(h)[0], h.fea_points[0], atol=1e-4)  # flat frame: exactly the FEA points
+    for a, b in ((rebuilt(h), rebuilt(f)), (h.fea_points, f.fea_points)):  # the same points in a relabelled order
+        np.testing.assert_allclose(np.sort(a, axis=-2), np.sort(b, axis=-2), atol=1e-4)
+    B = f.incidence.n_beams
+    assert (h.incidence.senders[:B] == f.incidence.receivers[:B]).all()
+    copies = augment([f], rotations=3, seed=0, mirror=True, half_turn=True)
+    assert len(copies) == 12 and {c.incidence.senders[0] for c in copies} == {f.incidence.senders[0],
+                                                                            f.incidence.receivers[0]}
 
 
 def test_mirror_averaged_answer_is_mirror_equivariant():

@@ -206,7 +206,7 @@ def test_every_model_config_composes_and_trains(data_dir, tmp_path, model_name):
 
 
 @pytest.mark.parametrize("option", ["model.update=kinematic", "loss_geometry=points", "rollout_gradient=stop",
-                                    "model.frame=fixed", "rotations_redraw=true"])
+                                    "model.frame=fixed", "rotations_redraw=true", "half_turn=true"])
 def test_training_options_reduce_the_loss(data_dir, tmp_path, option):
     summary = train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=16", "optim.lr=3e-3", "batch_size=1",
                                           "rollout_horizon=3", option)))
@@ -293,6 +293,12 @@ def test_init_from_fine_tunes_the_weights_with_the_checkpoints_split_and_statist
 def test_an_unknown_loss_geometry_is_refused(data_dir, tmp_path):
     with pytest.raises(ValueError, match="loss geometry='mesh': must be columns | points"):
         train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=1", "loss_geometry=mesh")))
+
+
+@pytest.mark.parametrize("option", ["half_turn", "mirror"])
+def test_a_non_boolean_augmentation_switch_is_refused_naming_it(data_dir, tmp_path, option):
+    with pytest.raises(ValueError, match=f"{option}=.*must be true or false"):
+        train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=1", f"{option}=2")))
 
 
 def test_sweep_appends_one_row_per_run(data_dir, tmp_path):
