@@ -68,13 +68,28 @@ def extend_split(split: dict[str, list[str]], names: Iterable[str]) -> dict[str,
     return out
 
 
+LATTICE_TURNS = (1, 2, 4)  # labellings per design: as sampled; + from the opposite corner; + the two next corners
+
+
+def lattice_turned(f: EpisodeFeatures, turns: int) -> list[EpisodeFeatures]:
+    """The design labelled from `turns` corners of its lattice (1: as it is; 2: + EpisodeFeatures.half_turned; 4: +
+    both quarter turns): the same design, nothing moved, each labelling one the factory gives some sampled design."""
+    if turns not in LATTICE_TURNS:
+        raise ValueError(f"lattice_turns={turns!r}: must be one of {list(LATTICE_TURNS)} (1 = the design as labelled)")
+    if turns == 1:
+        return [f]
+    h = f.half_turned()
+    if turns == 2:
+        return [f, h]
+    return [f, f.quarter_turned(), h, h.quarter_turned()]
+
+
 def augment(features: list[EpisodeFeatures], rotations: int, seed: int, mirror: bool = False,
-            half_turn: bool = False) -> list[EpisodeFeatures]:
-    """Each episode (with half_turn also labelled from the opposite lattice corner: EpisodeFeatures.half_turned; with
-    mirror, each of those also as its mirror image: EpisodeFeatures.mirrored) rotated about z (through the fixed
-    joint) by `rotations` angles spread over a full turn, with a random offset per episode; rotations <= 1 keeps
-    them as they are."""
-    features = [g for f in features for g in ((f, f.half_turned()) if half_turn else (f,))]
+            lattice_turns: int = 1) -> list[EpisodeFeatures]:
+    """Each episode labelled from `lattice_turns` corners of its lattice (lattice_turned), with mirror each of those
+    also as its mirror image (EpisodeFeatures.mirrored), all rotated about z (through the fixed joint) by `rotations`
+    angles spread over a full turn, with a random offset per episode; rotations <= 1 keeps them as they are."""
+    features = [g for f in features for g in lattice_turned(f, lattice_turns)]
     features = [g for f in features for g in ((f, f.mirrored()) if mirror else (f,))]
     if rotations <= 1:
         return list(features)

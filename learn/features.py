@@ -116,35 +116,71 @@ class EpisodeFeatures:
         gravity are mirror-symmetric, so every field equals the one extracted from the FEA of the mirrored design
         (tests/test_learn_symmetry.py solves one)."""
         from learn.symmetry import MIRROR, MIRROR_RENAME
-        return self._relabelled(MIRROR, MIRROR_RENAME, self.incidence)
+        return self._relabelled(MIRROR, MIRROR_RENAME, MIRROR_RENAME, np.zeros(self.incidence.n_beams, bool))
 
     def half_turned(self) -> "EpisodeFeatures":
         """The same design, nothing moved, labelled from the opposite corner of its lattice (learn.symmetry
         HALF_TURN_RENAME): every beam reversed, joint corners turned by half. This is how the factory labels the
         design turned by half a turn about z, so it is another labelling a sampled design can have; the FEA of the
         relabelled design gives these features (tests/test_learn_symmetry.py solves one)."""
-        from learn.symmetry import HALF_TURN_RENAME
-        return self._relabelled(np.eye(3), HALF_TURN_RENAME, self.incidence.reversed())
+        from learn.symmetry import HALF_TURN_RENAME, REVERSE_RENAME
+        return self._relabelled(np.eye(3), HALF_TURN_RENAME, REVERSE_RENAME, np.ones(self.incidence.n_beams, bool))
 
-    def _relabelled(self, R: np.ndarray, rename: dict, incidence: Incidence) -> "EpisodeFeatures":
-        """Every field transformed by R about the fixed joint and renamed (learn.symmetry.term_relabel)."""
-        from learn.symmetry import relabel_order, state_matrix, term_relabel
+    def quarter_turned(self) -> "EpisodeFeatures":
+        """The same design, nothing moved, labelled from the next corner of its lattice counter-clockwise, (i, j) ->
+        (j, n_i - 1 - i), as the factory labels the design turned by a quarter turn: the beams along i run the other
+        way and become the beams along j, those along j keep their direction, joint corners turn by a quarter
+        (learn.symmetry.QUARTER_TURN_RENAME). Two quarter turns are the half turn."""
+        from learn.symmetry import QUARTER_TURN_RENAME, REVERSE_RENAME
+        return self._relabelled(np.eye(3), QUARTER_TURN_RENAME, REVERSE_RENAME, self.beams_along_i())
 
-        def state(x, block):
-            M = state_matrix(block, lambda term: term_relabel(term, R, rename))
-            return (x.astype(np.float64) @ M).astype(x.dtype)
+    def beams_along_i(self) -> np.ndarray:
+        """[B] bool: the beams that leave their start joint through its east face (lattice direction +i; else +j):
+        the start section centre is nearer the middle of the joint's se-ne side than of its ne-nw side (frame 0)."""
+        inc, g = self.incidence, JOINT.geometry
+        joints, beams = self.joint_state[0], self.beam_state[0]
+        start = inc.senders[:inc.n_beams]
+        centre = joints[start, g.slice("center")]
+        side = lambda a, b: centre + 0.5 * (joints[start, g.slice(f"corner_{a}")]  # noqa: E731
+                                            + joints[start, g.slice(f"corner_{b}")])
+        section = beams[:, BEAM.geometry.slice("start_center")]
+        dist = lambda p: np.linalg.norm(section - p, axis=-1)  # noqa: E731
+        return dist(side("se", "ne")) < dist(side("ne", "nw"))
 
-        bc = lambda x, block: (x.astype(np.float64) @ term_relabel(block.bc, R, rename)).astype(x.dtype)  # noqa: E731
+    def _relabelled(self, R: np.ndarray, joint_rename: dict, reverse_rename: dict, reverse: np.ndarray
+                    ) -> "EpisodeFeatures":
+        """Every field transformed by R about the fixed joint and renamed (learn.symmetry.term_relabel): joints by
+        joint_rename, beams by it too and, where `reverse` [B] is set, also by reverse_rename (those beams then run
+        the other way: start and end joints swap)."""
+        from learn.symmetry import composed, relabel_order, state_matrix, term_relabel
+
+        beam_renames = (joint_rename, composed(reverse_rename, joint_rename))  # kept, reversed
+
+        def apply(x, block, term_of, rename):
+            M = state_matrix(block, lambda term: term_relabel(term, R, rename)) if term_of is None else \
+                term_relabel(term_of, R, rename)
+            return x.astype(np.float64) @ M
+
+        def beams(x, term_of=None):
+            out = np.where(reverse[:, None], apply(x, BEAM, term_of, beam_renames[1]),
+                           apply(x, BEAM, term_of, beam_renames[0]))
+            return out.astype(x.dtype)
+
         J, B = self.incidence.n_joints, self.incidence.n_beams
-        jo = relabel_order([p[0] for p in JOINT_POINTS], rename)
-        bo = relabel_order([p[0] for p in BEAM_POINTS], rename)
+        jo = relabel_order([p[0] for p in JOINT_POINTS], joint_rename)
+        bo = [relabel_order([p[0] for p in BEAM_POINTS], r) for r in beam_renames]
         order = np.concatenate([(np.arange(J)[:, None] * len(jo) + jo).ravel(),
-                                J * len(jo) + (np.arange(B)[:, None] * len(bo) + bo).ravel()])
+                                J * len(jo) + np.concatenate([b * len(bo[0]) + bo[int(r)]
+                                                              for b, r in enumerate(reverse)])])
+        senders, receivers = self.incidence.senders[:B], self.incidence.receivers[:B]
+        beam_ends = np.where(reverse[:, None], np.stack([receivers, senders], 1), np.stack([senders, receivers], 1))
         return EpisodeFeatures(
             name=self.name, family=self.family, design_size=self.design_size, fea_seconds=self.fea_seconds,
-            t=self.t, incidence=incidence,
-            joint_state=state(self.joint_state, JOINT), beam_state=state(self.beam_state, BEAM),
-            joint_bc=bc(self.joint_bc, JOINT), beam_bc=bc(self.beam_bc, BEAM), origin=R @ self.origin,
+            t=self.t, incidence=Incidence.from_beams(beam_ends, J),
+            joint_state=apply(self.joint_state, JOINT, None, joint_rename).astype(self.joint_state.dtype),
+            beam_state=beams(self.beam_state),
+            joint_bc=apply(self.joint_bc, JOINT, JOINT.bc, joint_rename).astype(self.joint_bc.dtype),
+            beam_bc=beams(self.beam_bc, BEAM.bc), origin=R @ self.origin,
             point_nodes=self.point_nodes[order], fea_points=(self.fea_points @ R.T)[:, order].astype(np.float32),
             conditions=self.conditions)
 

@@ -115,11 +115,13 @@ MIRROR = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # reflec
 MIRROR_RENAME = {"se": "nw", "nw": "se", "left": "right", "right": "left"}
 # The lattice half-turn: the same design, nothing moved, labelled from the opposite corner of its lattice,
 # (i, j) -> (n_i - 1 - i, n_j - 1 - j), as the factory labels the design turned by half a turn: every beam runs the
-# other way (start <-> end sections, left <-> right, width negated; EpisodeFeatures.half_turned reverses the beams)
-# and every joint's corners turn by half (sw <-> ne, se <-> nw).
-HALF_TURN_RENAME = {"start": "end", "end": "start", "left": "right", "right": "left",
-                    "sw": "ne", "ne": "sw", "se": "nw", "nw": "se"}
-NEGATED = ("_width",)
+# other way (REVERSE_RENAME: start <-> end sections, left <-> right, width negated; EpisodeFeatures.half_turned
+# reverses the beams) and every joint's corners turn by half (sw <-> ne, se <-> nw).
+REVERSE_RENAME = {"start": "end", "end": "start", "left": "right", "right": "left"}  # a beam running the other way
+HALF_TURN_RENAME = {"sw": "ne", "ne": "sw", "se": "nw", "nw": "se"}  # joint corners; every beam reversed
+# The lattice quarter turn, (i, j) -> (j, n_i - 1 - i): joint corner (ci, cj) -> (cj, 1 - ci); the beams along i
+# become beams along j and run the other way (reversed), the beams along j become beams along i, direction kept.
+QUARTER_TURN_RENAME = {"sw": "nw", "se": "sw", "ne": "se", "nw": "ne"}
 
 
 def renamed(name: str, rename: dict[str, str]) -> str:
@@ -127,21 +129,29 @@ def renamed(name: str, rename: dict[str, str]) -> str:
     return "_".join(rename.get(part, part) for part in name.split("_"))
 
 
+def composed(first: dict[str, str], then: dict[str, str]) -> dict[str, str]:
+    """The part renaming `first`, then `then`."""
+    return {p: then.get(first.get(p, p), first.get(p, p)) for p in {*first, *then}}
+
+
 def term_relabel(term: Term, R: np.ndarray, rename: dict[str, str]) -> np.ndarray:
     """[size, size] matrix M with relabel(x) = x @ M: every field transformed by R (rotate_term) and moved to the
-    field it becomes in the relabelled design; width vectors negated."""
+    field it becomes in the relabelled design; width vectors (half of right edge -> left edge) negated where left and
+    right swap."""
     moved = rotate_term(np.eye(term.size), term, R)
     M = np.zeros_like(moved)
+    flip = rename.get("left") == "right"
     for name in term.names():
         src, dst = term.slice(name), term.slice(renamed(name, rename))
-        sign = -1.0 if any(name.endswith(s) for s in NEGATED) else 1.0
-        M[:, dst] = sign * moved[:, src]
+        M[:, dst] = (-1.0 if flip and name.endswith("_width") else 1.0) * moved[:, src]
     return M
 
 
 def relabel_order(names: list[str], rename: dict[str, str]) -> np.ndarray:
-    """[n] index: entry p of the relabelled list is entry order[p] of `names` (point or field names)."""
-    return np.array([names.index(renamed(n, rename)) for n in names])
+    """[n] index: entry p of the relabelled list is entry order[p] of `names` (point or field names): the one that
+    `rename` turns into names[p]."""
+    source = {renamed(n, rename): k for k, n in enumerate(names)}
+    return np.array([source[n] for n in names])
 
 
 def term_mirror(term: Term) -> np.ndarray:

@@ -26,12 +26,11 @@ LAST, BEST = "last.pt", "best.pt"
 
 def augmented(features: list, cfg, rotations: int | None = None) -> list:
     """The training designs as conf/train.yaml augments them (learn.dataset.augment): rotations (cfg.rotations
-    unless given), mirror, half_turn."""
-    for key in ("mirror", "half_turn"):
-        if not isinstance(cfg.get(key, False), bool):
-            raise ValueError(f"{key}={cfg.get(key)!r}: must be true or false")
+    unless given), mirror, lattice_turns."""
+    if not isinstance(cfg.mirror, bool):
+        raise ValueError(f"mirror={cfg.mirror!r}: must be true or false")
     return augment(features, cfg.rotations if rotations is None else rotations, cfg.seed, cfg.mirror,
-                   cfg.get("half_turn", False))
+                   cfg.get("lattice_turns", 1))
 
 
 def model_args(cfg_model: DictConfig) -> dict:

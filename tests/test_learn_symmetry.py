@@ -27,7 +27,8 @@ KINDS = ("up", "down", "passive")
 def design_3x3(labelling: str = "plain") -> dict:
     """A jittered 3x3 design with mixed actuators, labelled as the factory labels it (beams run towards +i or +j).
     mirror: x <-> y and lattice (i, j) -> (j, i); half_turn: the same design, lattice (i, j) -> (2 - i, 2 - j), so
-    every beam runs the other way."""
+    every beam runs the other way; quarter_turn: the same design, lattice (i, j) -> (j, 2 - i), so the beams along i
+    run the other way."""
     rng = np.random.default_rng(7)
     joints, index = [], {}
     for j in range(3):
@@ -35,11 +36,12 @@ def design_3x3(labelling: str = "plain") -> dict:
             index[i, j] = len(joints)
             x, y = 75.0 * i + rng.uniform(-8, 8), 60.0 * j + rng.uniform(-8, 8)
             ij, xy = {"plain": ([i, j], [x, y]), "mirror": ([j, i], [y, x]),
-                      "half_turn": ([2 - i, 2 - j], [x, y])}[labelling]
+                      "half_turn": ([2 - i, 2 - j], [x, y]), "quarter_turn": ([j, 2 - i], [x, y])}[labelling]
             joints.append({"ij": ij, "xy": xy})
     beams = [[index[i, j], index[i + 1, j]] for j in range(3) for i in range(2)] + \
             [[index[i, j], index[i, j + 1]] for j in range(2) for i in range(3)]
-    beams = [[b, a] if labelling == "half_turn" else [a, b] for a, b in beams]
+    reversed_beams = {"half_turn": range(12), "quarter_turn": range(6)}.get(labelling, ())  # 0-5: along i
+    beams = [[b, a] if n in reversed_beams else [a, b] for n, (a, b) in enumerate(beams)]
     beams = [[a, b, KINDS[n % 3]] for n, (a, b) in enumerate(beams)]
     return {"format": "morphsim.design/1", "joints": joints, "beams": beams, "fixed_joint": index[1, 1],
             "beam_width": 7.2, "thickness": 4.0, "meta": {"family": "random"}}
@@ -80,11 +82,14 @@ def test_mirrored_features_are_the_fea_of_the_mirrored_design(plain_fea, tmp_pat
     assert np.abs(naive - g.beam_state[..., BEAM.geometry_slice]).max() > 1.0
 
 
-def test_half_turned_features_are_the_fea_of_the_design_labelled_from_the_opposite_corner(plain_fea, tmp_path):
-    """Relabelling the lattice from its opposite corner moves nothing, so its FEA is the same solution: every beam
-    reversed, every joint's corners turned by half (EpisodeFeatures.half_turned), to round-off in every frame."""
-    f, g = plain_fea, solved(tmp_path, "half_turn")
-    assert_same_features(f.half_turned(), g)
+@pytest.mark.parametrize("labelling", ["half_turn", "quarter_turn"])
+def test_lattice_turned_features_are_the_fea_of_the_design_labelled_from_another_corner(plain_fea, tmp_path,
+                                                                                       labelling):
+    """Relabelling the lattice from another corner moves nothing, so its FEA is the same solution: the beams that
+    now run the other way reversed, every joint's corners turned (EpisodeFeatures.half_turned, quarter_turned), to
+    round-off in every frame."""
+    f, g = plain_fea, solved(tmp_path, labelling)
+    assert_same_features(f.half_turned() if labelling == "half_turn" else f.quarter_turned(), g)
     assert np.abs(f.beam_state - g.beam_state).max() > 1.0  # and the labels matter
 
 
@@ -99,7 +104,7 @@ def test_mirror_is_an_involution_and_keeps_points_and_shared_nodes():
     assert len(augment([f], rotations=3, seed=0, mirror=True)) == 6
 
 
-def test_half_turn_is_an_involution_and_keeps_points():
+def test_lattice_turns_relabel_and_keep_the_points():
     f = extract(synthetic_episode(3, 3, 5, 3, 3, frames=3))
     h = f.half_turned()
     back = h.half_turned()
@@ -112,9 +117,13 @@ def test_half_turn_is_an_involution_and_keeps_points():
         np.testing.assert_allclose(np.sort(a, axis=-2), np.sort(b, axis=-2), atol=1e-4)
     B = f.incidence.n_beams
     assert (h.incidence.senders[:B] == f.incidence.receivers[:B]).all()
-    copies = augment([f], rotations=3, seed=0, mirror=True, half_turn=True)
-    assert len(copies) == 12 and {c.incidence.senders[0] for c in copies} == {f.incidence.senders[0],
-                                                                            f.incidence.receivers[0]}
+    q = f.quarter_turned()  # a group: four quarter turns are none, two are the half turn
+    np.testing.assert_array_equal(q.quarter_turned().beam_state, h.beam_state)
+    np.testing.assert_array_equal(q.quarter_turned().quarter_turned().quarter_turned().joint_state, f.joint_state)
+    assert f.beams_along_i().sum() == 6 and (q.beams_along_i() == ~f.beams_along_i()).all()
+    copies = augment([f], rotations=3, seed=0, mirror=True, lattice_turns=4)
+    assert len(copies) == 24 and len({c.incidence.senders[0] for c in copies}) == 2
+    assert [len(augment([f], 1, 0, lattice_turns=n)) for n in (1, 2, 4)] == [1, 2, 4]
 
 
 def test_mirror_averaged_answer_is_mirror_equivariant():

@@ -206,7 +206,7 @@ def test_every_model_config_composes_and_trains(data_dir, tmp_path, model_name):
 
 
 @pytest.mark.parametrize("option", ["model.update=kinematic", "loss_geometry=points", "rollout_gradient=stop",
-                                    "model.frame=fixed", "rotations_redraw=true", "half_turn=true"])
+                                    "model.frame=fixed", "rotations_redraw=true", "lattice_turns=4"])
 def test_training_options_reduce_the_loss(data_dir, tmp_path, option):
     summary = train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=16", "optim.lr=3e-3", "batch_size=1",
                                           "rollout_horizon=3", option)))
@@ -295,10 +295,11 @@ def test_an_unknown_loss_geometry_is_refused(data_dir, tmp_path):
         train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=1", "loss_geometry=mesh")))
 
 
-@pytest.mark.parametrize("option", ["half_turn", "mirror"])
-def test_a_non_boolean_augmentation_switch_is_refused_naming_it(data_dir, tmp_path, option):
-    with pytest.raises(ValueError, match=f"{option}=.*must be true or false"):
-        train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=1", f"{option}=2")))
+@pytest.mark.parametrize("option, message", [("mirror=2", "mirror=2: must be true or false"),
+                                             ("lattice_turns=3", r"lattice_turns=3: must be one of \[1, 2, 4\]")])
+def test_a_bad_augmentation_option_is_refused_naming_it(data_dir, tmp_path, option, message):
+    with pytest.raises(ValueError, match=message):
+        train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=1", option)))
 
 
 def test_sweep_appends_one_row_per_run(data_dir, tmp_path):
