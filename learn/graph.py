@@ -141,12 +141,6 @@ class Incidence:
                    receivers=np.concatenate([beams[:, 1], beams[:, 0]]),
                    edge_beam=np.concatenate([b, b]), n_joints=int(n_joints), n_beams=len(beams))
 
-    def reversed(self) -> "Incidence":
-        """The same beams running the other way (beam b = (c, a)); one design only."""
-        assert self.joint_graph is None, "reverse the designs before their disjoint union"
-        B = self.n_beams
-        return Incidence.from_beams(np.stack([self.receivers[:B], self.senders[:B]], axis=1), self.n_joints)
-
     @property
     def n_edges(self) -> int:
         return len(self.senders)
