@@ -155,18 +155,19 @@ class EpisodeFeatures:
         from learn.symmetry import composed, relabel_order, state_matrix, term_relabel
 
         beam_renames = (joint_rename, composed(reverse_rename, joint_rename))  # kept, reversed
+        state_M = lambda block, rename: state_matrix(block, lambda term: term_relabel(term, R, rename))  # noqa: E731
+        bc_M = lambda block, rename: term_relabel(block.bc, R, rename)  # noqa: E731
 
-        def apply(x, block, term_of, rename):
-            M = state_matrix(block, lambda term: term_relabel(term, R, rename)) if term_of is None else \
-                term_relabel(term_of, R, rename)
-            return x.astype(np.float64) @ M
-
-        def beams(x, term_of=None):
-            out = np.where(reverse[:, None], apply(x, BEAM, term_of, beam_renames[1]),
-                           apply(x, BEAM, term_of, beam_renames[0]))
-            return out.astype(x.dtype)
+        def relabel(x, matrix, block, renames, rev):  # [..., n, D] @ the block's matrix, per row: renames[rev]
+            out = np.empty_like(x)
+            for r, rename in zip((False, True), renames):
+                if (rev == r).any():
+                    out[..., rev == r, :] = x[..., rev == r, :].astype(np.float64) @ matrix(block, rename)
+            return out
 
         J, B = self.incidence.n_joints, self.incidence.n_beams
+        joints = lambda x, matrix: relabel(x, matrix, JOINT, (joint_rename,) * 2, np.zeros(J, bool))  # noqa: E731
+        beams = lambda x, matrix: relabel(x, matrix, BEAM, beam_renames, reverse)  # noqa: E731
         jo = relabel_order([p[0] for p in JOINT_POINTS], joint_rename)
         bo = [relabel_order([p[0] for p in BEAM_POINTS], r) for r in beam_renames]
         order = np.concatenate([(np.arange(J)[:, None] * len(jo) + jo).ravel(),
@@ -177,10 +178,8 @@ class EpisodeFeatures:
         return EpisodeFeatures(
             name=self.name, family=self.family, design_size=self.design_size, fea_seconds=self.fea_seconds,
             t=self.t, incidence=Incidence.from_beams(beam_ends, J),
-            joint_state=apply(self.joint_state, JOINT, None, joint_rename).astype(self.joint_state.dtype),
-            beam_state=beams(self.beam_state),
-            joint_bc=apply(self.joint_bc, JOINT, JOINT.bc, joint_rename).astype(self.joint_bc.dtype),
-            beam_bc=beams(self.beam_bc, BEAM.bc), origin=R @ self.origin,
+            joint_state=joints(self.joint_state, state_M), beam_state=beams(self.beam_state, state_M),
+            joint_bc=joints(self.joint_bc, bc_M), beam_bc=beams(self.beam_bc, bc_M), origin=R @ self.origin,
             point_nodes=self.point_nodes[order], fea_points=(self.fea_points @ R.T)[:, order].astype(np.float32),
             conditions=self.conditions)
 

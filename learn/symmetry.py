@@ -163,9 +163,3 @@ def term_mirror(term: Term) -> np.ndarray:
 def state_mirror(block) -> np.ndarray:
     """[S, S] matrix mirroring a block's state (geometry | stress) as x @ M."""
     return state_matrix(block, term_mirror)
-
-
-def mirror_order(names: list[str]) -> np.ndarray:
-    """[n] index: entry p of the mirrored list is entry order[p] of `names` (point or field names relabelled by
-    MIRROR_RENAME)."""
-    return relabel_order(names, MIRROR_RENAME)
