@@ -47,9 +47,9 @@ class Ensemble(nn.Module):
     def n_parameters(self) -> int:
         return sum(m.n_parameters for m in self.members)
 
-    def answer_with(self, rollout_rotations=None, rollout_mirror=None) -> "Ensemble":
+    def answer_with(self, rollout_rotations=None, rollout_mirror=None, rollout_lattice_turns=None) -> "Ensemble":
         for m in self.members:
-            m.answer_with(rollout_rotations, rollout_mirror)
+            m.answer_with(rollout_rotations, rollout_mirror, rollout_lattice_turns)
         return self
 
 

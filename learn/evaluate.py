@@ -122,7 +122,7 @@ def evaluate(cfg: DictConfig) -> dict:
     torch.set_num_threads(int(cfg.threads))
     sources = ensemble.checkpoint_paths(cfg.checkpoint)
     model, ckpt = ensemble.load(sources)
-    model.answer_with(cfg.rollout_rotations, cfg.rollout_mirror)
+    model.answer_with(cfg.rollout_rotations, cfg.rollout_mirror, cfg.rollout_lattice_turns)
     data_dir = Path(cfg.data_dir or ckpt["config"]["data_dir"])
     paths = split_paths(cfg.split, ckpt["split"], data_dir, sources[0])
     if not paths:

@@ -135,17 +135,9 @@ class EpisodeFeatures:
         return self._relabelled(np.eye(3), QUARTER_TURN_RENAME, REVERSE_RENAME, self.beams_along_i())
 
     def beams_along_i(self) -> np.ndarray:
-        """[B] bool: the beams that leave their start joint through its east face (lattice direction +i; else +j):
-        the start section centre is nearer the middle of the joint's se-ne side than of its ne-nw side (frame 0)."""
-        inc, g = self.incidence, JOINT.geometry
-        joints, beams = self.joint_state[0], self.beam_state[0]
-        start = inc.senders[:inc.n_beams]
-        centre = joints[start, g.slice("center")]
-        side = lambda a, b: centre + 0.5 * (joints[start, g.slice(f"corner_{a}")]  # noqa: E731
-                                            + joints[start, g.slice(f"corner_{b}")])
-        section = beams[:, BEAM.geometry.slice("start_center")]
-        dist = lambda p: np.linalg.norm(section - p, axis=-1)  # noqa: E731
-        return dist(side("se", "ne")) < dist(side("ne", "nw"))
+        """[B] bool: the beams that leave their start joint through its east face (lattice direction +i; else +j)."""
+        start = self.incidence.senders[:self.incidence.n_beams]
+        return beams_along_i(*(torch.as_tensor(x) for x in (self.joint_state[0], self.beam_state[0], start))).numpy()
 
     def _relabelled(self, R: np.ndarray, joint_rename: dict, reverse_rename: dict, reverse: np.ndarray
                     ) -> "EpisodeFeatures":
@@ -182,6 +174,19 @@ class EpisodeFeatures:
             joint_bc=joints(self.joint_bc, bc_M), beam_bc=beams(self.beam_bc, bc_M), origin=R @ self.origin,
             point_nodes=self.point_nodes[order], fea_points=(self.fea_points @ R.T)[:, order].astype(np.float32),
             conditions=self.conditions)
+
+
+def beams_along_i(joint_state, beam_state, start) -> torch.Tensor:
+    """[B] bool from states [J, Sj], [B, Sb] of the flat design and each beam's start joint [B]: the beams that leave
+    their start joint through its east face (lattice direction +i; else +j), i.e. whose start section centre is
+    nearer the middle of the joint's se-ne side than of its ne-nw side. Torch, so a traced rollout computes it."""
+    g = JOINT.geometry
+    joints = joint_state.index_select(-2, start)
+    centre = joints[..., g.slice("center")]
+    side = lambda a, b: centre + 0.5 * (joints[..., g.slice(f"corner_{a}")]  # noqa: E731
+                                        + joints[..., g.slice(f"corner_{b}")])
+    dist = lambda p: torch.linalg.vector_norm(beam_state[..., BEAM.geometry.slice("start_center")] - p, dim=-1)  # noqa: E731
+    return dist(side("se", "ne")) < dist(side("ne", "nw"))
 
 
 def rebuild_all_points(joint_state, beam_state):

@@ -172,6 +172,13 @@ class GraphIndex:
     beam_graph: torch.Tensor | None = None  # [B]
     n_graphs: int = 1
 
+    def beam_starts(self) -> torch.Tensor:
+        """[B] the start joint of every beam: the sender of its first directed edge (a beam's edge a -> c comes
+        before c -> a, in one graph as in a disjoint union)."""
+        edges = torch.arange(len(self.edge_beam), device=self.edge_beam.device)
+        first = edges.new_full((self.n_beams,), len(self.edge_beam)).scatter_reduce(0, self.edge_beam, edges, "amin")
+        return self.senders.index_select(0, first)
+
 
 def disjoint_union(parts: list[Incidence]) -> tuple[Incidence, np.ndarray, np.ndarray]:
     """One graph holding all parts; also the joint and beam offsets [P + 1] of every part."""

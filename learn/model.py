@@ -12,6 +12,7 @@ from learn import frames, kinematics
 from learn.gn import GNBlock, ProcessorBlock, activation_checked, mlp
 from learn.graph import BEAM, JOINT, Block, GraphIndex
 from learn.pca import Normalizer, TermPCA
+from learn.symmetry import LATTICE_QUARTER_TURNS
 
 TERMS = ("joint_geometry", "joint_stress", "joint_bc", "beam_geometry", "beam_stress", "beam_bc")
 EDGE_FEATURES = 6  # sender centre and receiver centre relative to the beam's middle centre
@@ -129,6 +130,18 @@ def integer_in(value, name: str, low: int, high: int, meaning: str) -> int:
 def rollout_rotations_checked(value, name: str) -> int:
     """A rotation count for answer_unroll: an integer in [1, 64]."""
     return integer_in(value, name, 1, 64, "1 = the network alone")
+
+
+def rollout_lattice_turns_checked(value, name: str, kinematic: bool = False) -> int:
+    """Labellings an answer is averaged over (learn.symmetry.LATTICE_QUARTER_TURNS): 1, 2 or 4; more than one only
+    for an additive update (a kinematic model places beams along a tree that a relabelling changes)."""
+    if isinstance(value, bool) or value not in LATTICE_QUARTER_TURNS:
+        raise ValueError(f"{name}={value!r}: must be one of {sorted(LATTICE_QUARTER_TURNS)} (1 = the design as "
+                         "labelled; 2 = also from the opposite lattice corner; 4 = from all four corners)")
+    if value > 1 and kinematic:
+        raise ValueError(f"{name}={value}: needs model.update=additive (a kinematic model places beams along its "
+                         "kinematic tree, which a relabelling changes)")
+    return int(value)
 
 
 def global_latent_checked(value) -> int:
@@ -379,8 +392,17 @@ class Simulator(nn.Module):
         """Whether a rollout is also averaged over the mirror image (learn.rollout.answer_unroll)."""
         return bool(self.args.get("rollout_mirror", False))
 
-    def answer_with(self, rollout_rotations=None, rollout_mirror=None) -> "Simulator":
-        """Override the stored rollout_rotations / rollout_mirror (None keeps them); returns self."""
+    @property
+    def rollout_lattice_turns(self) -> int:
+        """Lattice labellings a rollout is averaged over (learn.rollout.answer_unroll); 1: the design as labelled."""
+        return int(self.args.get("rollout_lattice_turns", 1))
+
+    def answer_with(self, rollout_rotations=None, rollout_mirror=None, rollout_lattice_turns=None) -> "Simulator":
+        """Override the stored rollout_rotations / rollout_mirror / rollout_lattice_turns (None keeps them); returns
+        self."""
+        if rollout_lattice_turns is not None:
+            self.args["rollout_lattice_turns"] = rollout_lattice_turns_checked(
+                rollout_lattice_turns, "rollout_lattice_turns", self.kinematic)
         if rollout_rotations is not None:
             self.args["rollout_rotations"] = rollout_rotations_checked(rollout_rotations, "rollout_rotations")
         if rollout_mirror is not None:

@@ -88,7 +88,7 @@ def predict(cfg: DictConfig) -> dict:
         raise ValueError(f"steps={steps}: must be >= 1 (the training episodes have 10)")
     sources = ensemble.checkpoint_paths(cfg.checkpoint)
     model, ckpt = ensemble.load(sources)
-    model.answer_with(cfg.rollout_rotations, cfg.rollout_mirror)
+    model.answer_with(cfg.rollout_rotations, cfg.rollout_mirror, cfg.rollout_lattice_turns)
     episode = Path(cfg.episode)
     f = extract(read_episode(episode), name=episode.name)
     start = time.perf_counter()

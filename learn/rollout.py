@@ -8,10 +8,11 @@ import numpy as np
 import torch
 
 from learn.ensemble import Ensemble, members_of, stack_mean
-from learn.features import EpisodeFeatures, extract, rebuild_all_points
+from learn.features import EpisodeFeatures, beams_along_i, extract, rebuild_all_points
 from learn.graph import BEAM, JOINT, GraphIndex
 from learn.model import Simulator, Static, static_from
-from learn.symmetry import rotation_angles, rotation_z, state_mirror, state_rotation, term_mirror, term_rotation
+from learn.symmetry import (LATTICE_QUARTER_TURNS, lattice_matrices, rotation_angles, rotation_z, state_mirror,
+                            state_rotation, term_mirror, term_rotation)
 
 
 def unroll(model: Simulator, joint_state: torch.Tensor, beam_state: torch.Tensor, static: Static,
@@ -38,28 +39,64 @@ def _group(block, n: int, mirror: bool, dtype) -> tuple[torch.Tensor, torch.Tens
     return tuple(torch.as_tensor(np.stack(x), dtype=dtype) for x in (forward, inverse, bc))
 
 
+def _lattice(block, turns: int, dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The labellings of model.rollout_lattice_turns (learn.symmetry.LATTICE_QUARTER_TURNS) as state matrices
+    [L, 2, S, S] (x @ A; [:, 0] for a block that keeps its direction, [:, 1] for one that runs the other way), their
+    inverses, and the bc matrices [L, 2, D, D]."""
+    state, bc = zip(*(lattice_matrices(block, k) for k in LATTICE_QUARTER_TURNS[turns]))
+    return tuple(torch.as_tensor(np.stack(x), dtype=dtype) for x in (state, np.linalg.inv(state), bc))
+
+
+def lattice_reversals(turns: int, along_i: torch.Tensor) -> torch.Tensor:
+    """[L, B] bool: the beams that run the other way in each labelling of `turns` (none, those along i, all, those
+    along j for 0, 1, 2, 3 quarter turns)."""
+    by_turns = (torch.zeros_like(along_i), along_i, torch.ones_like(along_i), ~along_i)
+    return torch.stack([by_turns[k] for k in LATTICE_QUARTER_TURNS[turns]])
+
+
+def _relabelled(x: torch.Tensor, A: torch.Tensor, reverse: torch.Tensor | None, lead: int) -> torch.Tensor:
+    """x [*, L?, ..., N, D] @ A [L, 2, D, D], each row by A[:, 1] where `reverse` [L, N] is set, else by A[:, 0]. The
+    L axis of the result sits after the first `lead` axes of x; x already has it when lead > 0 (mapping back)."""
+    pattern = "...nd,lde->l...ne" if lead == 0 else "fl...nd,lde->fl...ne"
+    kept = torch.einsum(pattern, x, A[:, 0])
+    if reverse is None:
+        return kept
+    mask = reverse.reshape(*(1,) * lead, reverse.shape[0], *(1,) * (kept.dim() - lead - 3), reverse.shape[1], 1)
+    return torch.where(mask, torch.einsum(pattern, x, A[:, 1]), kept)
+
+
 def answer_unroll(model: Simulator, joint_state: torch.Tensor, beam_state: torch.Tensor, static: Static,
                   t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """unroll as the trained simulator answers: the design is rolled out in g frames at once (one batch) -- rotated
-    about z through the fixed joint (the features' origin) by model.rollout_rotations angles, and also mirrored
-    with model.rollout_mirror (EpisodeFeatures.mirrored) -- every copy mapped back and the states averaged. The
-    group average makes the answer exactly equivariant to those rotations (and the mirror), which the network
-    alone is only approximately (it learned them from augmentation, or not at all); training and its validation
-    use the network alone (unroll). An Ensemble answers with the mean of its members' answers, frame by frame."""
+    """unroll as the trained simulator answers: the design is rolled out in several copies at once (one batch) --
+    labelled from model.rollout_lattice_turns corners of its lattice (EpisodeFeatures.half_turned, quarter_turned),
+    each rotated about z through the fixed joint (the features' origin) by model.rollout_rotations angles, and also
+    mirrored with model.rollout_mirror (EpisodeFeatures.mirrored) -- every copy mapped back and the states averaged.
+    The average makes the answer exactly equivariant to that group, which the network alone is only approximately
+    (it learned it from augmentation, or not at all); training and its validation use the network alone (unroll).
+    The relabelled copies keep the design's incidence: a beam that runs the other way only swaps its two directed
+    edges, and every core treats its edges alike and sums them. An Ensemble answers with the mean of its members'
+    answers, frame by frame."""
     if isinstance(model, Ensemble):
         return stack_mean([answer_unroll(m, joint_state, beam_state, static, t) for m in model.members])
-    n, mirror = model.rollout_rotations, model.rollout_mirror
-    if n <= 1 and not mirror:
+    n, mirror, turns = model.rollout_rotations, model.rollout_mirror, model.rollout_lattice_turns
+    if n <= 1 and not mirror and turns == 1:
         return unroll(model, joint_state, beam_state, static, t)
+    Lj, Lj_back, Ljbc = _lattice(JOINT, turns, joint_state.dtype)
+    Lb, Lb_back, Lbbc = _lattice(BEAM, turns, beam_state.dtype)
+    g = static.index
+    reverse = lattice_reversals(turns, beams_along_i(joint_state, beam_state, g.beam_starts()))
     Aj, Aj_back, Ajbc = _group(JOINT, n, mirror, joint_state.dtype)
     Ab, Ab_back, Abbc = _group(BEAM, n, mirror, beam_state.dtype)
-    g = Aj.shape[0]
-    to = lambda x, A: torch.einsum("...nd,kde->k...ne", x, A)  # noqa: E731  [..., N, D] -> [g, ..., N, D]
-    copies = Static(to(static.joint_bc, Ajbc), to(static.beam_bc, Abbc), static.index,
-                    static.kinematic_tree() if model.kinematic else None)  # one tree: the copies share the topology
-    js, bs = unroll(model, to(joint_state, Aj), to(beam_state, Ab), copies, t)  # [F, g, ..., N, S]
-    back = lambda x, A: torch.einsum("fk...nd,kde->f...ne", x, A) / g  # noqa: E731
-    return back(js, Aj_back), back(bs, Ab_back)
+    copies = Aj.shape[0] * Lj.shape[0]
+    to = lambda x, A: torch.einsum("...nd,kde->k...ne", x, A)  # noqa: E731  [..., N, D] -> [k, ..., N, D]
+    static_copies = Static(to(_relabelled(static.joint_bc, Ljbc, None, 0), Ajbc),
+                           to(_relabelled(static.beam_bc, Lbbc, reverse, 0), Abbc), g,
+                           static.kinematic_tree() if model.kinematic else None)  # one tree: the copies share the topology
+    js, bs = unroll(model, to(_relabelled(joint_state, Lj, None, 0), Aj),
+                    to(_relabelled(beam_state, Lb, reverse, 0), Ab), static_copies, t)  # [F, k, L, ..., N, S]
+    back = lambda x, A: torch.einsum("fk...nd,kde->f...ne", x, A)  # noqa: E731  summed over k -> [F, L, ..., N, S]
+    return (_relabelled(back(js, Aj_back), Lj_back, None, 1).sum(1) / copies,
+            _relabelled(back(bs, Ab_back), Lb_back, reverse, 1).sum(1) / copies)
 
 
 class _Unroll(torch.nn.Module):

@@ -122,6 +122,10 @@ HALF_TURN_RENAME = {"sw": "ne", "ne": "sw", "se": "nw", "nw": "se"}  # joint cor
 # The lattice quarter turn, (i, j) -> (j, n_i - 1 - i): joint corner (ci, cj) -> (cj, 1 - ci); the beams along i
 # become beams along j and run the other way (reversed), the beams along j become beams along i, direction kept.
 QUARTER_TURN_RENAME = {"sw": "nw", "se": "sw", "ne": "se", "nw": "ne"}
+# The labellings a design is averaged over at answer time (model.rollout_lattice_turns): quarter turns of the lattice
+# from its labelling as sampled. k quarter turns reverse no beam (0), the beams along i (1), every beam (2), the beams
+# along j (3).
+LATTICE_QUARTER_TURNS = {1: (0,), 2: (0, 2), 4: (0, 1, 2, 3)}
 
 
 def renamed(name: str, rename: dict[str, str]) -> str:
@@ -145,6 +149,23 @@ def term_relabel(term: Term, R: np.ndarray, rename: dict[str, str]) -> np.ndarra
         src, dst = term.slice(name), term.slice(renamed(name, rename))
         M[:, dst] = (-1.0 if flip and name.endswith("_width") else 1.0) * moved[:, src]
     return M
+
+
+def lattice_rename(quarter_turns: int) -> dict[str, str]:
+    """The joint-corner renaming of `quarter_turns` lattice quarter turns (QUARTER_TURN_RENAME applied that often)."""
+    rename: dict[str, str] = {}
+    for _ in range(quarter_turns % 4):
+        rename = composed(rename, QUARTER_TURN_RENAME)
+    return rename
+
+
+def lattice_matrices(block, quarter_turns: int) -> tuple[np.ndarray, np.ndarray]:
+    """[2, S, S] and [2, D, D]: the state and bc matrices (x @ M) of `quarter_turns` lattice quarter turns for a block
+    that keeps its direction (0) and for one that runs the other way after them (1: REVERSE_RENAME too)."""
+    rename = lattice_rename(quarter_turns)
+    renames = (rename, composed(REVERSE_RENAME, rename))
+    state = [state_matrix(block, lambda term: term_relabel(term, np.eye(3), r)) for r in renames]
+    return np.stack(state), np.stack([term_relabel(block.bc, np.eye(3), r) for r in renames])
 
 
 def relabel_order(names: list[str], rename: dict[str, str]) -> np.ndarray:

@@ -17,7 +17,8 @@ from learn import checkpoint
 from learn.conditions import envelope
 from learn.dataset import GraphSet, augment, episode_paths, extend_split, load_features, split_names
 from learn.metrics import multistep_loss, rollout_errors
-from learn.model import Simulator, integer_in, rollout_rotations_checked, term_retention
+from learn.model import (Simulator, integer_in, rollout_lattice_turns_checked, rollout_rotations_checked,
+                         term_retention)
 from learn.rollout import input_floor
 
 log = logging.getLogger(__name__)
@@ -44,7 +45,10 @@ def model_args(cfg_model: DictConfig) -> dict:
             "frame": str(cfg_model.get("frame", "global")), "update": str(cfg_model.get("update", "additive")),
             "rollout_rotations": rollout_rotations_checked(cfg_model.get("rollout_rotations", 1),
                                                            "model.rollout_rotations"),
-            "rollout_mirror": bool(cfg_model.get("rollout_mirror", False))}
+            "rollout_mirror": bool(cfg_model.get("rollout_mirror", False)),
+            "rollout_lattice_turns": rollout_lattice_turns_checked(
+                cfg_model.get("rollout_lattice_turns", 1), "model.rollout_lattice_turns",
+                str(cfg_model.get("update", "additive")) == "kinematic")}
 
 
 def retention_of(cfg: DictConfig):

@@ -1,7 +1,7 @@
 """Learned rollout wall time vs symmetry copies: `make bench-rollout CKPT=...` -> reports/bench_rollout/.
 
 --checkpoint a.pt,b.pt times an ensemble (learn.ensemble: every member with the setting's copies).
-Per setting (rotations x mirror, learn.rollout.answer_unroll): the TorchScript-compiled rollout of one design from
+Per setting (rotations x mirror x lattice labellings, learn.rollout.answer_unroll): the TorchScript-compiled rollout of one design from
 frame 0 to the rebuilt points of every frame, on one thread; the median over designs (the checkpoint's test split)
 of the median of --repeats calls (learn.evaluate.median_seconds). Writes rollout.csv, rollout.md (machine, load,
 command) and rollout.png (ms vs copies, the 5 ms target). Run it on an idle machine.
@@ -30,14 +30,16 @@ from tradeoff import machine  # noqa: E402  (scripts/tradeoff.py)
 TARGET_MS = 5.0  # ../shared/MISSION.md: <= 5 ms per design on one CPU core
 
 
-def settings(text: str) -> list[tuple[int, bool]]:
-    """'1:false,4:true' -> [(1, False), (4, True)]."""
+def settings(text: str) -> list[tuple[int, bool, int]]:
+    """'1:false,4:true,1:false:4' -> [(1, False, 1), (4, True, 1), (1, False, 4)]: rotations, mirror, lattice
+    labellings (1 when left out)."""
     out = []
     for item in text.split(","):
-        n, _, m = item.partition(":")
-        if m not in ("true", "false") or not n.isdigit() or int(n) < 1:
-            raise SystemExit(f"--settings: {item!r} must be <rotations >= 1>:<true|false>")
-        out.append((int(n), m == "true"))
+        n, m, *turns = item.split(":")
+        turns = turns or ["1"]
+        if m not in ("true", "false") or not n.isdigit() or int(n) < 1 or turns not in (["1"], ["2"], ["4"]):
+            raise SystemExit(f"--settings: {item!r} must be <rotations >= 1>:<true|false>[:<lattice turns 1|2|4>]")
+        out.append((int(n), m == "true", int(turns[0])))
     return out
 
 
@@ -48,7 +50,7 @@ def main() -> None:
     p.add_argument("--data-dir", help="default: the checkpoint's data_dir")
     p.add_argument("--designs", type=int, default=8, help="test designs timed (the first by name)")
     p.add_argument("--repeats", type=int, default=30)
-    p.add_argument("--settings", default="1:false,2:false,4:false,1:true,2:true,4:true,8:true")
+    p.add_argument("--settings", default="1:false,2:false,4:false,1:true,2:true,4:true,8:true,1:false:2,1:false:4,1:true:4")
     p.add_argument("--out", default="reports/bench_rollout")
     a = p.parse_args()
     torch.set_num_threads(1)
@@ -62,10 +64,11 @@ def main() -> None:
     features = load_features([data_dir / n for n in names])
     load_before = "/".join(f"{x:.2f}" for x in os.getloadavg())
     rows = []
-    for n, mirror in settings(a.settings):
-        compiled = compile_rollout(model.answer_with(n, mirror), features[0])
+    for n, mirror, turns in settings(a.settings):
+        compiled = compile_rollout(model.answer_with(n, mirror, turns), features[0])
         ms = [1e3 * median_seconds(lambda f=f: compiled(*graph_inputs(f)), a.repeats) for f in features]
-        rows.append({"members": members, "rotations": n, "mirror": mirror, "copies": members * n * (2 if mirror else 1),
+        rows.append({"members": members, "rotations": n, "mirror": mirror, "lattice_turns": turns,
+                     "copies": members * n * (2 if mirror else 1) * turns,
                      "ms_per_design": float(np.median(ms)), "ms_min": float(np.min(ms)), "ms_max": float(np.max(ms))})
         print(f"rotations {n} mirror {mirror}: {rows[-1]['ms_per_design']:.2f} ms/design", flush=True)
     load_after = "/".join(f"{x:.2f}" for x in os.getloadavg())
@@ -77,9 +80,10 @@ def main() -> None:
              f"Machine: {machine()}; 1 torch thread; load average before/after {load_before} / {load_after}.",
              f"Command: `{' '.join([Path(sys.executable).name, *sys.argv])}`; {len(features)} test designs, "
              f"median of {a.repeats} calls each, then the median over designs.", "",
-             "| members | rotations | mirror | copies | ms per design (median) | min / max over designs |",
-             "|---|---|---|---|---|---|"]
-    lines += [f"| {r['members']} | {r['rotations']} | {r['mirror']} | {r['copies']} | {r['ms_per_design']:.2f} | "
+             "| members | rotations | mirror | lattice turns | copies | ms per design (median) | min / max over designs |",
+             "|---|---|---|---|---|---|---|"]
+    lines += [f"| {r['members']} | {r['rotations']} | {r['mirror']} | {r['lattice_turns']} | {r['copies']} | "
+              f"{r['ms_per_design']:.2f} | "
               f"{r['ms_min']:.2f} / {r['ms_max']:.2f} |" for r in rows]
     atomic.write_text(out / "rollout.md", "\n".join(lines) + "\n")
 
@@ -89,11 +93,10 @@ def main() -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6, 4))
-    for mirror, marker in ((False, "o"), (True, "s")):
-        sel = [r for r in rows if r["mirror"] == mirror]
-        if sel:
-            ax.plot([r["copies"] for r in sel], [r["ms_per_design"] for r in sel], marker + "-",
-                    label="rotations + mirror" if mirror else "rotations")
+    for (mirror, turns), marker in zip(sorted({(r["mirror"], r["lattice_turns"]) for r in rows}), "osD^v<>p"):
+        sel = [r for r in rows if (r["mirror"], r["lattice_turns"]) == (mirror, turns)]
+        label = "rotations" + (" + mirror" if mirror else "") + (f" x {turns} labellings" if turns > 1 else "")
+        ax.plot([r["copies"] for r in sel], [r["ms_per_design"] for r in sel], marker + "-", label=label)
     ax.axhline(TARGET_MS, color="k", ls="--", lw=0.8, label=f"target {TARGET_MS:g} ms")
     ax.set(xlabel="copies averaged per answer", ylabel="rollout ms per design (1 thread)",
            title="learned rollout cost of symmetry averaging")

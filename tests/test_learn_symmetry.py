@@ -150,6 +150,38 @@ def test_mirror_averaged_answer_is_mirror_equivariant():
         model.answer_with(None, "yes")
 
 
+@pytest.mark.parametrize("turns, relabel", [(2, "half_turned"), (4, "quarter_turned"), (4, "half_turned")])
+def test_lattice_averaged_answer_is_equivariant_to_relabelling(turns, relabel):
+    """Averaged over the lattice labellings (model.rollout_lattice_turns), the answer for the design labelled from
+    another corner is the relabelled answer: what a designer gets does not depend on which corner the lattice is
+    numbered from. The network alone (1 labelling) answers differently; with the mirror and rotations on top, too."""
+    fs = [extract(synthetic_episode(3, 3, 5, 3, 3, 5, seed=s)) for s in range(3)]
+    data = GraphSet.build(fs)
+    model = Simulator.fit({"core": "double_gn", "latent": 8, "widths": [16, 8], "pin_fixed_joint": True,
+                           "global_latent": 8}, data.joint_state, data.beam_state, data.static).eval()
+    torch.manual_seed(0)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(0.3 * torch.randn_like(p))
+    f = fs[1]
+
+    def gap():  # the answer for the relabelled design vs the relabelled answer
+        a, b = rollout(model, f, steps=4), rollout(model, getattr(f, relabel)(), steps=4)
+        want = getattr(replace(f, joint_state=a.joint_states, beam_state=a.beam_states), relabel)()
+        return max(np.abs(got - w).max() / np.abs(w).max()
+                   for got, w in ((b.joint_states, want.joint_state), (b.beam_states, want.beam_state)))
+    plain = gap()
+    model.answer_with(rollout_lattice_turns=turns)
+    averaged = gap()
+    model.answer_with(2, True)
+    with_group = gap()
+    assert max(averaged, with_group) < 1e-5 < 1e-2 < plain
+    a = rollout(model, f, steps=4)  # frame 0 is the design itself
+    np.testing.assert_allclose(a.beam_states[0], f.beam_state[0], atol=1e-4)
+    with pytest.raises(ValueError, match="rollout_lattice_turns=3: must be one of"):
+        model.answer_with(rollout_lattice_turns=3)
+
+
 def test_a_graph_set_turned_per_item_equals_the_set_of_turned_designs():
     """GraphSet.rotated (the per-batch rotations of rotations_redraw) turns each item's states and bc terms as
     EpisodeFeatures.rotated does, item by item; batches with rotations hold every item that many times."""
