@@ -70,7 +70,7 @@ def main() -> None:
         rows.append({"members": members, "rotations": n, "mirror": mirror, "lattice_turns": turns,
                      "copies": members * n * (2 if mirror else 1) * turns,
                      "ms_per_design": float(np.median(ms)), "ms_min": float(np.min(ms)), "ms_max": float(np.max(ms))})
-        print(f"rotations {n} mirror {mirror}: {rows[-1]['ms_per_design']:.2f} ms/design", flush=True)
+        print(f"rotations {n} mirror {mirror} lattice turns {turns}: {rows[-1]['ms_per_design']:.2f} ms/design", flush=True)
     load_after = "/".join(f"{x:.2f}" for x in os.getloadavg())
 
     out = Path(a.out)
