@@ -185,7 +185,8 @@ def beams_along_i(joint_state, beam_state, start) -> torch.Tensor:
     centre = joints[..., g.slice("center")]
     side = lambda a, b: centre + 0.5 * (joints[..., g.slice(f"corner_{a}")]  # noqa: E731
                                         + joints[..., g.slice(f"corner_{b}")])
-    dist = lambda p: torch.linalg.vector_norm(beam_state[..., BEAM.geometry.slice("start_center")] - p, dim=-1)  # noqa: E731
+    section = beam_state[..., BEAM.geometry.slice("start_center")]
+    dist = lambda p: torch.linalg.vector_norm(section - p, dim=-1)  # noqa: E731
     return dist(side("se", "ne")) < dist(side("ne", "nw"))
 
 

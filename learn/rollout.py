@@ -75,7 +75,7 @@ def answer_unroll(model: Simulator, joint_state: torch.Tensor, beam_state: torch
     (it learned it from augmentation, or not at all); training and its validation use the network alone (unroll).
     The relabelled copies keep the design's incidence: a beam that runs the other way only swaps its two directed
     edges, and every core treats its edges alike and sums them. An Ensemble answers with the mean of its members'
-    answers, frame by frame."""
+    answers, frame by frame. States: one design or one disjoint union of designs (no leading batch axes)."""
     if isinstance(model, Ensemble):
         return stack_mean([answer_unroll(m, joint_state, beam_state, static, t) for m in model.members])
     n, mirror, turns = model.rollout_rotations, model.rollout_mirror, model.rollout_lattice_turns
@@ -91,7 +91,7 @@ def answer_unroll(model: Simulator, joint_state: torch.Tensor, beam_state: torch
     to = lambda x, A: torch.einsum("...nd,kde->k...ne", x, A)  # noqa: E731  [..., N, D] -> [k, ..., N, D]
     static_copies = Static(to(_relabelled(static.joint_bc, Ljbc, None, 0), Ajbc),
                            to(_relabelled(static.beam_bc, Lbbc, reverse, 0), Abbc), g,
-                           static.kinematic_tree() if model.kinematic else None)  # one tree: the copies share the topology
+                           static.kinematic_tree() if model.kinematic else None)  # one tree: one topology
     js, bs = unroll(model, to(_relabelled(joint_state, Lj, None, 0), Aj),
                     to(_relabelled(beam_state, Lb, reverse, 0), Ab), static_copies, t)  # [F, k, L, ..., N, S]
     back = lambda x, A: torch.einsum("fk...nd,kde->f...ne", x, A)  # noqa: E731  summed over k -> [F, L, ..., N, S]

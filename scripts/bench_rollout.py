@@ -1,9 +1,9 @@
 """Learned rollout wall time vs symmetry copies: `make bench-rollout CKPT=...` -> reports/bench_rollout/.
 
 --checkpoint a.pt,b.pt times an ensemble (learn.ensemble: every member with the setting's copies).
-Per setting (rotations x mirror x lattice labellings, learn.rollout.answer_unroll): the TorchScript-compiled rollout of one design from
-frame 0 to the rebuilt points of every frame, on one thread; the median over designs (the checkpoint's test split)
-of the median of --repeats calls (learn.evaluate.median_seconds). Writes rollout.csv, rollout.md (machine, load,
+Per setting (rotations x mirror x lattice labellings, learn.rollout.answer_unroll): the TorchScript-compiled rollout
+of one design from frame 0 to the rebuilt points of every frame, on one thread; the median over designs (the
+checkpoint's test split) of the median of --repeats calls (learn.evaluate.median_seconds). Writes rollout.csv, rollout.md (machine, load,
 command) and rollout.png (ms vs copies, the 5 ms target). Run it on an idle machine.
 """
 from __future__ import annotations
@@ -50,7 +50,8 @@ def main() -> None:
     p.add_argument("--data-dir", help="default: the checkpoint's data_dir")
     p.add_argument("--designs", type=int, default=8, help="test designs timed (the first by name)")
     p.add_argument("--repeats", type=int, default=30)
-    p.add_argument("--settings", default="1:false,2:false,4:false,1:true,2:true,4:true,8:true,1:false:2,1:false:4,1:true:4")
+    p.add_argument("--settings", help="<rotations>:<mirror>[:<lattice turns>], comma-separated",
+                   default="1:false,2:false,4:false,1:true,2:true,4:true,8:true,1:false:2,1:false:4,1:true:4")
     p.add_argument("--out", default="reports/bench_rollout")
     a = p.parse_args()
     torch.set_num_threads(1)
@@ -70,7 +71,8 @@ def main() -> None:
         rows.append({"members": members, "rotations": n, "mirror": mirror, "lattice_turns": turns,
                      "copies": members * n * (2 if mirror else 1) * turns,
                      "ms_per_design": float(np.median(ms)), "ms_min": float(np.min(ms)), "ms_max": float(np.max(ms))})
-        print(f"rotations {n} mirror {mirror} lattice turns {turns}: {rows[-1]['ms_per_design']:.2f} ms/design", flush=True)
+        print(f"rotations {n} mirror {mirror} lattice turns {turns}: {rows[-1]['ms_per_design']:.2f} ms/design",
+              flush=True)
     load_after = "/".join(f"{x:.2f}" for x in os.getloadavg())
 
     out = Path(a.out)
@@ -80,7 +82,8 @@ def main() -> None:
              f"Machine: {machine()}; 1 torch thread; load average before/after {load_before} / {load_after}.",
              f"Command: `{' '.join([Path(sys.executable).name, *sys.argv])}`; {len(features)} test designs, "
              f"median of {a.repeats} calls each, then the median over designs.", "",
-             "| members | rotations | mirror | lattice turns | copies | ms per design (median) | min / max over designs |",
+             "| members | rotations | mirror | lattice turns | copies | ms per design (median) "
+             "| min / max over designs |",
              "|---|---|---|---|---|---|---|"]
     lines += [f"| {r['members']} | {r['rotations']} | {r['mirror']} | {r['lattice_turns']} | {r['copies']} | "
               f"{r['ms_per_design']:.2f} | "

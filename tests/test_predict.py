@@ -104,7 +104,8 @@ def test_bench_rollout_writes_a_row_per_setting_and_refuses_a_bad_one(trained, d
     rows = (tmp_path / "b" / "rollout.csv").read_text().splitlines()
     assert rows[0].startswith("members,rotations,mirror,lattice_turns,copies,ms_per_design") and len(rows) == 4
     assert rows[2].startswith("1,2,True,1,4,") and rows[3].startswith("1,1,False,4,4,")
-    assert (tmp_path / "b" / "rollout.png").stat().st_size > 0 and "Machine:" in (tmp_path / "b" / "rollout.md").read_text()
+    assert (tmp_path / "b" / "rollout.png").stat().st_size > 0
+    assert "Machine:" in (tmp_path / "b" / "rollout.md").read_text()
     for setting in ("0:false", "1:false:3"):
         bad = subprocess.run(base + ["--settings", setting], capture_output=True, text=True, timeout=600)
         assert bad.returncode != 0 and "--settings" in bad.stderr
