@@ -3,8 +3,8 @@
 --checkpoint a.pt,b.pt times an ensemble (learn.ensemble: every member with the setting's copies).
 Per setting (rotations x mirror x lattice labellings, learn.rollout.answer_unroll): the TorchScript-compiled rollout
 of one design from frame 0 to the rebuilt points of every frame, on one thread; the median over designs (the
-checkpoint's test split) of the median of --repeats calls (learn.evaluate.median_seconds). Writes rollout.csv, rollout.md (machine, load,
-command) and rollout.png (ms vs copies, the 5 ms target). Run it on an idle machine.
+checkpoint's test split) of the median of --repeats calls (learn.evaluate.median_seconds). Writes rollout.csv,
+rollout.md (machine, load, command) and rollout.png (ms vs copies, the 5 ms target). Run it on an idle machine.
 """
 from __future__ import annotations
 
