@@ -6,7 +6,10 @@ For every design of each split (conf/diagnose.yaml), per frame k = 1..F-1 and as
 - motion: how far the FEA's points move in that step (the scale a one-step error compares with);
 and per start frame s, the final-frame error of a rollout started from the FEA's frame s instead of frame 0
 (a model trained on whole-episode rollouts only ever saw its own intermediate states); plus the input floor
-(learn.rollout.input_floor). The medians go to diagnose.json / diagnose.md and one plot, split beside split, so
+(learn.rollout.input_floor). And how the beams are oriented, per frame, in degrees (median over each design's beams):
+chord_error, the angle between the rollout's and the FEA's chord (start section centre -> end section centre), beside
+chord_rotation, the angle the FEA's chord has turned since frame 0; their ratio says how much of each beam's turn the
+model gets wrong, which, times the lever arm to the far side of the grid, is most of the position error. The medians go to diagnose.json / diagnose.md and one plot, split beside split, so
 train vs held-out separates fitting from generalisation.
 """
 from __future__ import annotations
@@ -24,7 +27,8 @@ from omegaconf import DictConfig
 from data_schema import atomic
 from learn import checkpoint
 from learn.dataset import GraphSet, load_features
-from learn.features import rebuild_all_points
+from learn.features import BEAM_POINTS, JOINT_POINTS, rebuild_all_points
+from learn.graph import SECTIONS
 from learn.metrics import fea_points, max_per_item, point_owner
 from learn.model import Simulator
 from learn.rollout import input_floor, unroll
@@ -33,6 +37,26 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 log = logging.getLogger(__name__)
+
+
+def chords(points: np.ndarray, n_joints: int) -> np.ndarray:
+    """[..., P, 3] points as rebuild_all_points orders them (n_joints joints' points, then the beams') -> [..., B, 3]
+    every beam's unit chord, start section centre -> end section centre."""
+    beams = points[..., n_joints * len(JOINT_POINTS):, :]
+    sections = beams.reshape(*beams.shape[:-2], -1, len(SECTIONS), len(BEAM_POINTS) // len(SECTIONS), 3)
+    centres = sections[..., 0, :]  # BEAM_POINTS: each section's centre first
+    chord = centres[..., -1, :] - centres[..., 0, :]
+    return chord / np.linalg.norm(chord, axis=-1, keepdims=True)
+
+
+def angle_deg(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Angle between unit vectors [..., 3], degrees."""
+    return np.degrees(np.arccos(np.clip((u * v).sum(-1), -1.0, 1.0)))
+
+
+def median_per_item(x: np.ndarray, item: np.ndarray, n: int) -> np.ndarray:
+    """[..., B] per beam -> [n, ...] the median over each item's beams."""
+    return np.stack([np.median(x[..., item == i], axis=-1) for i in range(n)])
 
 
 def diagnose_set(model: Simulator, data: GraphSet) -> dict:
@@ -51,9 +75,13 @@ def diagnose_set(model: Simulator, data: GraphSet) -> dict:
             from_start.append(rebuild_all_points(js[-1], bs[-1]).numpy())
     dist = lambda a, b: np.linalg.norm(a - b, axis=-1)  # noqa: E731
     rel = lambda e: (max_per_item(e, owner, n) / size).T  # noqa: E731  [n, ...]
+    J, beam_item = data.joint_offsets[-1], np.repeat(np.arange(n), np.diff(data.beam_offsets))
+    fea_chords = chords(truth, J)  # [F, B, 3]
     return {"rollout": rel(dist(rollout[1:], truth[1:])), "one_step": rel(dist(one_step, truth[1:])),
             "motion": rel(dist(truth[1:], truth[:-1])),
             "final_from_start": rel(dist(np.stack(from_start), truth[-1][None])),
+            "chord_error_deg": median_per_item(angle_deg(chords(rollout[1:], J), fea_chords[1:]), beam_item, n),
+            "chord_rotation_deg": median_per_item(angle_deg(fea_chords[1:], fea_chords[:1]), beam_item, n),
             "input_floor": np.array([input_floor(model, f).max() / f.design_size for f in data.items])}
 
 
@@ -63,8 +91,10 @@ def medians(d: dict) -> dict:
 
 def markdown(report: dict) -> str:
     pct = lambda xs: " | ".join(f"{100 * x:.2f}" for x in xs)  # noqa: E731
+    deg = lambda xs: " | ".join(f"{x:.2f}" for x in xs)  # noqa: E731
     lines = [f"# Error sources of {report['checkpoint']}", "",
-             "Median over each split's designs of max point error / design size (%), per frame k.", ""]
+             "Median over each split's designs of max point error / design size (%), per frame k; beam chords: the "
+             "median over designs of each design's median over its beams (degrees).", ""]
     for split, m in report["splits"].items():
         F = len(m["rollout"])
         lines += [f"## {split} ({m['n_designs']} designs)", "",
@@ -72,14 +102,24 @@ def markdown(report: dict) -> str:
                   f"| rollout from frame 0 | {pct(m['rollout'])} |",
                   f"| one step from FEA frame k-1 | {pct(m['one_step'])} |",
                   f"| FEA motion in step k | {pct(m['motion'])} |",
-                  f"| final error, rollout from FEA frame k-1 | {pct(m['final_from_start'])} |", "",
+                  f"| final error, rollout from FEA frame k-1 | {pct(m['final_from_start'])} |",
+                  f"| beam chord direction error (deg) | {deg(m['chord_error_deg'])} |",
+                  f"| FEA beam chord rotation since frame 0 (deg) | {deg(m['chord_rotation_deg'])} |", "",
                   f"input floor (PCA'd geometry): median {100 * m['input_floor']:.3f} %", ""]
     return "\n".join(lines)
 
 
 def plot(report: dict, path: Path) -> None:
     splits = report["splits"]
-    fig, axes = plt.subplots(1, len(splits), figsize=(5.5 * len(splits), 4), squeeze=False, sharey=True)
+    fig, axes = plt.subplots(2, len(splits), figsize=(5.5 * len(splits), 7.5), squeeze=False, sharey="row")
+    for ax, (split, m) in zip(axes[1], splits.items()):
+        k = np.arange(1, len(m["chord_error_deg"]) + 1)
+        ax.plot(k, m["chord_error_deg"], "o-", label="beam chord direction error")
+        ax.plot(k, m["chord_rotation_deg"], "^:", label="FEA beam chord rotation since frame 0")
+        ax.set_xlabel("frame k")
+        ax.grid(alpha=0.3)
+    axes[1][0].set_ylabel("degrees (median over beams, then designs)")
+    axes[1][0].legend(fontsize=8)
     for ax, (split, m) in zip(axes[0], splits.items()):
         k = np.arange(1, len(m["rollout"]) + 1)
         for key, style, label in (("rollout", "o-", "rollout from frame 0"),
@@ -88,7 +128,6 @@ def plot(report: dict, path: Path) -> None:
                                   ("final_from_start", "d-.", "final error, start at FEA frame k-1")):
             ax.plot(k, 100 * np.asarray(m[key]), style, label=label)
         ax.set_title(f"{split}: {m['n_designs']} designs (medians)")
-        ax.set_xlabel("frame k")
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel("max error / design size (%)")
     axes[0][0].legend(fontsize=8)

@@ -338,6 +338,22 @@ def test_pca_retention_per_term_kind(data_dir, tmp_path):
     assert 0.9 <= float(state["pca.beam_stress.explained"]) < 1.0
 
 
+def test_beam_chords_turn_by_the_angle_the_points_turn():
+    from learn.diagnose import angle_deg, chords
+    from learn.features import extract
+    from learn.symmetry import rotation_z
+    f = extract(synthetic_episode(3, 3, 5, 3, 3, frames=2))
+    points = rebuild_all_points(f.joint_state[0].astype(float), f.beam_state[0].astype(float))
+    J = f.incidence.n_joints
+    c = chords(points, J)
+    np.testing.assert_allclose(np.linalg.norm(c, axis=-1), 1.0)
+    centre = lambda s: f.beam_state[0][:, BEAM.geometry.slice(f"{s}_center")].astype(float)  # noqa: E731
+    chord = centre("end") - centre("start")
+    np.testing.assert_allclose(angle_deg(c, chord / np.linalg.norm(chord, axis=-1, keepdims=True)), 0.0, atol=1e-3)
+    np.testing.assert_allclose(c[:, 2], 0.0, atol=1e-6)  # flat design: horizontal chords turn by the turn about z
+    np.testing.assert_allclose(angle_deg(chords(points @ rotation_z(0.3).T, J), c), np.degrees(0.3), atol=1e-4)
+
+
 def test_diagnose_separates_one_step_from_rollout_error_per_split(trained, tmp_path):
     from learn.diagnose import diagnose
     run, _ = trained
@@ -350,6 +366,8 @@ def test_diagnose_separates_one_step_from_rollout_error_per_split(trained, tmp_p
         assert m["rollout"][0] == pytest.approx(m["one_step"][0])  # the first step is the same step
         assert m["final_from_start"][0] == pytest.approx(m["rollout"][-1])  # starting at frame 0 is the rollout
         assert m["motion"][0] > 0 and m["input_floor"] >= 0
+        assert len(m["chord_error_deg"]) == len(m["chord_rotation_deg"]) == 10
+        assert all(0 <= x <= 180 for x in m["chord_error_deg"]) and 0 < m["chord_rotation_deg"][-1] <= 180
     assert (tmp_path / "diagnose.md").exists() and (tmp_path / "diagnose.png").stat().st_size > 0
     with pytest.raises(ValueError, match=r"\['holdout'\] not in"):
         diagnose(cfg_for("diagnose", [f"checkpoint={run / 'best.pt'}", f"out_dir={tmp_path}", "splits=[holdout]"]))
