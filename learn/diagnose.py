@@ -27,9 +27,8 @@ from omegaconf import DictConfig
 from data_schema import atomic
 from learn import checkpoint
 from learn.dataset import GraphSet, load_features
-from learn.features import BEAM_POINTS, JOINT_POINTS, rebuild_all_points
-from learn.graph import SECTIONS
-from learn.metrics import fea_points, max_per_item, point_owner
+from learn.features import rebuild_all_points
+from learn.metrics import beam_chords, fea_points, max_per_item, point_owner
 from learn.model import Simulator
 from learn.rollout import input_floor, unroll
 
@@ -39,13 +38,10 @@ import matplotlib.pyplot as plt  # noqa: E402
 log = logging.getLogger(__name__)
 
 
-def chords(points: np.ndarray, n_joints: int) -> np.ndarray:
-    """[..., P, 3] points as rebuild_all_points orders them (n_joints joints' points, then the beams') -> [..., B, 3]
-    every beam's unit chord, start section centre -> end section centre."""
-    beams = points[..., n_joints * len(JOINT_POINTS):, :]
-    sections = beams.reshape(*beams.shape[:-2], -1, len(SECTIONS), len(BEAM_POINTS) // len(SECTIONS), 3)
-    centres = sections[..., 0, :]  # BEAM_POINTS: each section's centre first
-    chord = centres[..., -1, :] - centres[..., 0, :]
+def chords(beam_state: torch.Tensor) -> np.ndarray:
+    """[..., B, S] beam states -> [..., B, 3] every beam's unit chord, start section centre -> end section centre."""
+    halves = beam_chords(beam_state).numpy()
+    chord = halves[..., :3] + halves[..., 3:]
     return chord / np.linalg.norm(chord, axis=-1, keepdims=True)
 
 
@@ -67,6 +63,7 @@ def diagnose_set(model: Simulator, data: GraphSet) -> dict:
     with torch.inference_mode():
         js, bs = unroll(model, data.joint_state[0], data.beam_state[0], data.static, data.t)
         rollout = rebuild_all_points(js, bs).numpy()
+        rollout_chords = chords(bs[1:])
         j1, b1 = model.step(data.joint_state[:-1], data.beam_state[:-1], data.static, data.t[:-1])
         one_step = rebuild_all_points(j1, b1).numpy()  # [F-1, P, 3]: frame k from the FEA's frame k-1
         from_start = []
@@ -75,12 +72,12 @@ def diagnose_set(model: Simulator, data: GraphSet) -> dict:
             from_start.append(rebuild_all_points(js[-1], bs[-1]).numpy())
     dist = lambda a, b: np.linalg.norm(a - b, axis=-1)  # noqa: E731
     rel = lambda e: (max_per_item(e, owner, n) / size).T  # noqa: E731  [n, ...]
-    J, beam_item = data.joint_offsets[-1], np.repeat(np.arange(n), np.diff(data.beam_offsets))
-    fea_chords = chords(truth, J)  # [F, B, 3]
+    beam_item = np.repeat(np.arange(n), np.diff(data.beam_offsets))
+    fea_chords = chords(data.beam_state)  # [F, B, 3]
     return {"rollout": rel(dist(rollout[1:], truth[1:])), "one_step": rel(dist(one_step, truth[1:])),
             "motion": rel(dist(truth[1:], truth[:-1])),
             "final_from_start": rel(dist(np.stack(from_start), truth[-1][None])),
-            "chord_error_deg": median_per_item(angle_deg(chords(rollout[1:], J), fea_chords[1:]), beam_item, n),
+            "chord_error_deg": median_per_item(angle_deg(rollout_chords, fea_chords[1:]), beam_item, n),
             "chord_rotation_deg": median_per_item(angle_deg(fea_chords[1:], fea_chords[:1]), beam_item, n),
             "input_floor": np.array([input_floor(model, f).max() / f.design_size for f in data.items])}
 

@@ -17,16 +17,26 @@ def column_weights(block, stress_weight: float) -> torch.Tensor:
     return w
 
 
+def beam_chords(beam_state: torch.Tensor) -> torch.Tensor:
+    """[..., B, 6] each beam's two half chords, start -> middle and middle -> end section centre (mm): how far and
+    which way the beam has turned and bent, independent of where it sits."""
+    centre = lambda s: beam_state[..., BEAM.geometry.slice(f"{s}_center")]  # noqa: E731
+    return torch.cat([centre("middle") - centre("start"), centre("end") - centre("middle")], -1)
+
+
 def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_std: float = 0.0,
                    stress_weight: float = 1.0, generator: torch.Generator | None = None,
-                   geometry: str = "columns", through: bool = True) -> torch.Tensor:
+                   geometry: str = "columns", through: bool = True, chord_weight: float = 0.0) -> torch.Tensor:
     """Mean squared error of the states after 1..horizon steps from every start frame; `noise_std` (in units of
     the per-column step std) perturbs the start states so the model learns to correct its own drift.
     geometry="columns": every state column in units of its step std (stress columns weighted by stress_weight);
     geometry="points": the geometry as the points it rebuilds (what the evaluation measures), their distance to
     the FEA's in units of the mean geometry step std, plus the stress columns as above.
     through=False stops the gradient between steps (the pushforward trick): every step is trained as a single step,
-    from the state the model itself reached, to the FEA's next state."""
+    from the state the model itself reached, to the FEA's next state.
+    chord_weight > 0 adds the beams' half chords (beam_chords) in units of their FEA step std over the batch, weighted
+    so: the turn of each beam relative to itself, which the absolute columns (whose step std is the motion of the
+    whole grid) weigh little, and which carried by the lever arm is most of the position error (README)."""
     if geometry not in ("columns", "points"):
         raise ValueError(f"loss geometry={geometry!r}: must be columns | points")
     F = len(batch.t)
@@ -42,6 +52,8 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
         wj[JOINT.geometry_slice], wb[BEAM.geometry_slice] = 0.0, 0.0
         scale = torch.cat([model.joint_delta.std[JOINT.geometry_slice], model.beam_delta.std[BEAM.geometry_slice]])
         scale = scale.mean()
+    if chord_weight > 0:
+        chord_std = beam_chords(batch.beam_state).diff(dim=0).flatten(0, -2).std(0).clamp_min(1e-3)
     loss = torch.zeros(())
     for k in range(h):
         if not through:
@@ -50,6 +62,8 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
         tj, tb = batch.joint_state[k + 1:S + k + 1], batch.beam_state[k + 1:S + k + 1]
         ej, eb = (j - tj) / model.joint_delta.std, (b - tb) / model.beam_delta.std
         loss = loss + (wj * ej ** 2).mean() + (wb * eb ** 2).mean()
+        if chord_weight > 0:
+            loss = loss + chord_weight * ((beam_chords(b) - beam_chords(tb)) / chord_std).square().mean()
         if points:
             d = (rebuild_all_points(j, b) - rebuild_all_points(tj, tb)) / scale
             loss = loss + d.square().sum(-1).mean()

@@ -104,7 +104,8 @@ def train_epoch(model: Simulator, opt: torch.optim.Optimizer, train_set: GraphSe
     for batch in train_set.batches(cfg.batch_size, gen, redrawn):
         loss = multistep_loss(model, batch, cfg.rollout_horizon, cfg.noise_std, cfg.stress_weight, gen,
                               geometry=cfg.get("loss_geometry", "columns"),
-                              through=cfg.get("rollout_gradient", "through") == "through")
+                              through=cfg.get("rollout_gradient", "through") == "through",
+                              chord_weight=float(cfg.get("chord_weight", 0.0)))
         opt.zero_grad()
         loss.backward()
         if cfg.optim.grad_clip:
@@ -120,7 +121,8 @@ def evaluate_split(model: Simulator, data: GraphSet, cfg: DictConfig) -> dict:
     model.eval()
     with torch.no_grad():
         loss = float(multistep_loss(model, data, cfg.rollout_horizon, 0.0, cfg.stress_weight,
-                                     geometry=cfg.get("loss_geometry", "columns")))
+                                     geometry=cfg.get("loss_geometry", "columns"),
+                                     chord_weight=float(cfg.get("chord_weight", 0.0))))
     max_err, _ = rollout_errors(model, data)
     model.train()
     worst = max_err.max(axis=1)  # [items] max over frames
@@ -155,6 +157,9 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
     schedule_checked(cfg.optim.get("schedule", "step"))
     if cfg.get("rollout_gradient", "through") not in ("through", "stop"):
         raise ValueError(f"rollout_gradient={cfg.rollout_gradient!r}: must be through | stop")
+    chord_weight = cfg.get("chord_weight", 0.0)
+    if isinstance(chord_weight, bool) or not isinstance(chord_weight, (int, float)) or not 0 <= chord_weight <= 100:
+        raise ValueError(f"chord_weight={chord_weight!r}: must be a number in [0, 100] (0 = no chord term)")
     last = run_dir / LAST
     resumed = checkpoint.load(last) if cfg.resume and last.exists() else None
     if resumed is not None and resumed.get("finished"):

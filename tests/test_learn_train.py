@@ -17,8 +17,9 @@ from data_schema.testing import synthetic_episode
 from learn import checkpoint
 from learn.evaluate import evaluate
 from learn.dataset import GraphSet, augment, load_features
-from learn.features import rebuild_all_points
+from learn.features import extract, rebuild_all_points
 from learn.graph import BEAM
+from learn.model import Simulator
 from learn.rollout import reference, rollout
 from learn.train import evaluate_split, train
 from learn.validity import check
@@ -206,7 +207,8 @@ def test_every_model_config_composes_and_trains(data_dir, tmp_path, model_name):
 
 
 @pytest.mark.parametrize("option", ["model.update=kinematic", "loss_geometry=points", "rollout_gradient=stop",
-                                    "model.frame=fixed", "rotations_redraw=true", "lattice_turns=4"])
+                                    "model.frame=fixed", "rotations_redraw=true", "lattice_turns=4",
+                                    "chord_weight=1.0"])
 def test_training_options_reduce_the_loss(data_dir, tmp_path, option):
     summary = train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=16", "optim.lr=3e-3", "batch_size=1",
                                           "rollout_horizon=3", option)))
@@ -290,13 +292,28 @@ def test_init_from_fine_tunes_the_weights_with_the_checkpoints_split_and_statist
     assert [h["epoch"] for h in hist] == [0, 1]  # a fresh history and optimiser
 
 
+def test_beam_chords_are_the_section_centre_differences_and_weigh_in_the_loss():
+    from learn.metrics import beam_chords, multistep_loss
+    fs = [extract(synthetic_episode(3, 3, 5, 3, 3, 4, seed=s)) for s in range(2)]
+    data = GraphSet.build(fs)
+    b = data.beam_state
+    centre = lambda s: b[..., BEAM.geometry.slice(f"{s}_center")]  # noqa: E731
+    torch.testing.assert_close(beam_chords(b)[..., :3] + beam_chords(b)[..., 3:], centre("end") - centre("start"))
+    model = Simulator.fit({"core": "double_gn", "latent": 8, "widths": [16]}, data.joint_state, data.beam_state,
+                          data.static)
+    with torch.no_grad():
+        plain, with_chords = (multistep_loss(model, data, 2, chord_weight=w) for w in (0.0, 1.0))
+    assert with_chords > plain > 0
+
+
 def test_an_unknown_loss_geometry_is_refused(data_dir, tmp_path):
     with pytest.raises(ValueError, match="loss geometry='mesh': must be columns | points"):
         train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=1", "loss_geometry=mesh")))
 
 
 @pytest.mark.parametrize("option, message", [("mirror=2", "mirror=2: must be true or false"),
-                                             ("lattice_turns=3", r"lattice_turns=3: must be one of \[1, 2, 4\]")])
+                                             ("lattice_turns=3", r"lattice_turns=3: must be one of \[1, 2, 4\]"),
+                                             ("chord_weight=-1", r"chord_weight=-1: must be a number in \[0, 100\]")])
 def test_a_bad_augmentation_option_is_refused_naming_it(data_dir, tmp_path, option, message):
     with pytest.raises(ValueError, match=message):
         train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=1", option)))
@@ -338,20 +355,15 @@ def test_pca_retention_per_term_kind(data_dir, tmp_path):
     assert 0.9 <= float(state["pca.beam_stress.explained"]) < 1.0
 
 
-def test_beam_chords_turn_by_the_angle_the_points_turn():
+def test_beam_chords_turn_by_the_angle_the_design_turns():
     from learn.diagnose import angle_deg, chords
-    from learn.features import extract
     from learn.symmetry import rotation_z
     f = extract(synthetic_episode(3, 3, 5, 3, 3, frames=2))
-    points = rebuild_all_points(f.joint_state[0].astype(float), f.beam_state[0].astype(float))
-    J = f.incidence.n_joints
-    c = chords(points, J)
+    c = chords(torch.as_tensor(f.beam_state[0], dtype=torch.float64))
     np.testing.assert_allclose(np.linalg.norm(c, axis=-1), 1.0)
-    centre = lambda s: f.beam_state[0][:, BEAM.geometry.slice(f"{s}_center")].astype(float)  # noqa: E731
-    chord = centre("end") - centre("start")
-    np.testing.assert_allclose(angle_deg(c, chord / np.linalg.norm(chord, axis=-1, keepdims=True)), 0.0, atol=1e-3)
     np.testing.assert_allclose(c[:, 2], 0.0, atol=1e-6)  # flat design: horizontal chords turn by the turn about z
-    np.testing.assert_allclose(angle_deg(chords(points @ rotation_z(0.3).T, J), c), np.degrees(0.3), atol=1e-4)
+    turned = chords(torch.as_tensor(f.rotated(rotation_z(0.3)).beam_state[0], dtype=torch.float64))
+    np.testing.assert_allclose(angle_deg(turned, c), np.degrees(0.3), atol=1e-3)
 
 
 def test_diagnose_separates_one_step_from_rollout_error_per_split(trained, tmp_path):
