@@ -44,7 +44,7 @@ def cfg_for(name, overrides):
 
 def tiny(data_dir, run_dir, *extra):
     return [f"data_dir={data_dir}", f"run_dir={run_dir}", "model.latent=16", "model.widths=[32,16]",
-            "rotations=2", "patience=100", "log_every=100", "threads=1",
+            "rotations=2", "lattice_turns=1", "patience=100", "log_every=100", "threads=1",
             "split.train=0.5", "split.val=0.25", "split.test=0.25", *extra]
 
 
@@ -321,7 +321,8 @@ def test_a_bad_augmentation_option_is_refused_naming_it(data_dir, tmp_path, opti
 
 def test_sweep_appends_one_row_per_run(data_dir, tmp_path):
     cmd = [sys.executable, "-m", "learn.train", "-m", "+sweep=grid", f"data_dir={data_dir}", "epochs=1",
-           "rotations=1", "threads=1", f"hydra.sweep.dir={tmp_path}", f"run_dir={tmp_path}/" + "${hydra:job.num}",
+           "lattice_turns=1", "rotations=1", "threads=1", f"hydra.sweep.dir={tmp_path}",
+           f"run_dir={tmp_path}/" + "${hydra:job.num}",
            f"results_csv={tmp_path}/results.csv", "hydra.sweeper.params={model.latent: '8,16', model.widths: '[16]'}"]
     out = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
