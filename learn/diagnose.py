@@ -9,8 +9,9 @@ and per start frame s, the final-frame error of a rollout started from the FEA's
 (learn.rollout.input_floor). And how the beams are oriented, per frame, in degrees (median over each design's beams):
 chord_error, the angle between the rollout's and the FEA's chord (start section centre -> end section centre), beside
 chord_rotation, the angle the FEA's chord has turned since frame 0; their ratio says how much of each beam's turn the
-model gets wrong, which, times the lever arm to the far side of the grid, is most of the position error. The medians go to diagnose.json / diagnose.md and one plot, split beside split, so
-train vs held-out separates fitting from generalisation.
+model gets wrong, which, times the lever arm to the far side of the grid, is most of the position error. The medians
+go to diagnose.json / diagnose.md and one plot, split beside split, so train vs held-out separates fitting from
+generalisation.
 """
 from __future__ import annotations
 
