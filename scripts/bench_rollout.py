@@ -35,11 +35,10 @@ def settings(text: str) -> list[tuple[int, bool, int]]:
     labellings (1 when left out)."""
     out = []
     for item in text.split(","):
-        n, m, *turns = item.split(":")
-        turns = turns or ["1"]
-        if m not in ("true", "false") or not n.isdigit() or int(n) < 1 or turns not in (["1"], ["2"], ["4"]):
+        n, m, turns = (item.split(":") + ["1"])[:3] if item.count(":") in (1, 2) else ("", "", "")
+        if m not in ("true", "false") or not n.isdigit() or int(n) < 1 or turns not in ("1", "2", "4"):
             raise SystemExit(f"--settings: {item!r} must be <rotations >= 1>:<true|false>[:<lattice turns 1|2|4>]")
-        out.append((int(n), m == "true", int(turns[0])))
+        out.append((int(n), m == "true", int(turns)))
     return out
 
 

@@ -106,7 +106,7 @@ def test_bench_rollout_writes_a_row_per_setting_and_refuses_a_bad_one(trained, d
     assert rows[2].startswith("1,2,True,1,4,") and rows[3].startswith("1,1,False,4,4,")
     assert (tmp_path / "b" / "rollout.png").stat().st_size > 0
     assert "Machine:" in (tmp_path / "b" / "rollout.md").read_text()
-    for setting in ("0:false", "1:false:3"):
+    for setting in ("0:false", "1:false:3", "1"):
         bad = subprocess.run(base + ["--settings", setting], capture_output=True, text=True, timeout=600)
         assert bad.returncode != 0 and "--settings" in bad.stderr
 
