@@ -135,7 +135,7 @@ def rollout_rotations_checked(value, name: str) -> int:
 def rollout_lattice_turns_checked(value, name: str, kinematic: bool = False) -> int:
     """Labellings an answer is averaged over (learn.symmetry.LATTICE_QUARTER_TURNS): 1, 2 or 4; more than one only
     for an additive update (a kinematic model places beams along a tree that a relabelling changes)."""
-    if isinstance(value, bool) or value not in LATTICE_QUARTER_TURNS:
+    if isinstance(value, bool) or not isinstance(value, int) or value not in LATTICE_QUARTER_TURNS:
         raise ValueError(f"{name}={value!r}: must be one of {sorted(LATTICE_QUARTER_TURNS)} (1 = the design as "
                          "labelled; 2 = also from the opposite lattice corner; 4 = from all four corners)")
     if value > 1 and kinematic:
