@@ -9,9 +9,11 @@ and per start frame s, the final-frame error of a rollout started from the FEA's
 (learn.rollout.input_floor). And how the beams are oriented, per frame, in degrees (median over each design's beams):
 chord_error, the angle between the rollout's and the FEA's chord (start section centre -> end section centre), beside
 chord_rotation, the angle the FEA's chord has turned since frame 0; their ratio says how much of each beam's turn the
-model gets wrong, which, times the lever arm to the far side of the grid, is most of the position error. The medians
-go to diagnose.json / diagnose.md and one plot, split beside split, so train vs held-out separates fitting from
-generalisation.
+model gets wrong, which, times the lever arm to the far side of the grid, is most of the position error. And per
+block (each joint's and beam's points, rigidly fitted onto the FEA's: learn.rigid.block_parts; median over a design's
+joints and over its beams): orientation error beside the FEA block's own turn (deg), centroid placement error and the
+shape error left after the fit (/ design size). The medians go to diagnose.json / diagnose.md and one plot, split
+beside split, so train vs held-out separates fitting from generalisation.
 """
 from __future__ import annotations
 
@@ -28,9 +30,10 @@ from omegaconf import DictConfig
 from data_schema import atomic
 from learn import checkpoint
 from learn.dataset import GraphSet, load_features
-from learn.features import rebuild_all_points
+from learn.features import BEAM_POINTS, JOINT_POINTS, rebuild_all_points
 from learn.metrics import beam_chords, fea_points, max_per_item, point_owner
 from learn.model import Simulator
+from learn.rigid import block_parts
 from learn.rollout import input_floor, unroll
 
 matplotlib.use("Agg")
@@ -54,6 +57,31 @@ def angle_deg(u: np.ndarray, v: np.ndarray) -> np.ndarray:
 def median_per_item(x: np.ndarray, item: np.ndarray, n: int) -> np.ndarray:
     """[..., B] per beam -> [n, ...] the median over each item's beams."""
     return np.stack([np.median(x[..., item == i], axis=-1) for i in range(n)])
+
+
+def blocks(points: np.ndarray, n_joints: int) -> tuple[np.ndarray, np.ndarray]:
+    """[F, P, 3] points as rebuild_all_points orders them -> [F, J, joint points, 3] and [F, B, beam points, 3]."""
+    nj, nb = len(JOINT_POINTS), len(BEAM_POINTS)
+    F = points.shape[0]
+    return (points[:, :n_joints * nj].reshape(F, n_joints, nj, 3),
+            points[:, n_joints * nj:].reshape(F, -1, nb, 3))
+
+
+def block_split(rollout: np.ndarray, truth: np.ndarray, data: GraphSet, size: np.ndarray) -> dict:
+    """Per frame k >= 1, the rollout's blocks (each joint's and beam's points) against the FEA's, split into
+    orientation error (deg) beside the FEA block's turn since frame 0, placement (centroid distance / design size) and
+    shape (what is left after a rigid fit, / design size): learn.rigid.block_parts; median over each design's joints
+    and over its beams -> [n, F-1] per key."""
+    n, J = len(data), data.joint_offsets[-1]
+    item = {"joint": np.repeat(np.arange(n), np.diff(data.joint_offsets)),
+            "beam": np.repeat(np.arange(n), np.diff(data.beam_offsets))}
+    out = {}
+    for kind, pred, fea in zip(("joint", "beam"), blocks(rollout, J), blocks(truth, J)):
+        parts = block_parts(pred[1:], fea[1:], fea[:1])
+        for key, x in parts.items():
+            med = median_per_item(x, item[kind], n)
+            out[f"{kind}_{key}"] = med if key.endswith("deg") else med / size[:, None]
+    return out
 
 
 def diagnose_set(model: Simulator, data: GraphSet) -> dict:
@@ -80,6 +108,7 @@ def diagnose_set(model: Simulator, data: GraphSet) -> dict:
             "final_from_start": rel(dist(np.stack(from_start), truth[-1][None])),
             "chord_error_deg": median_per_item(angle_deg(rollout_chords, fea_chords[1:]), beam_item, n),
             "chord_rotation_deg": median_per_item(angle_deg(fea_chords[1:], fea_chords[:1]), beam_item, n),
+            **block_split(rollout, truth, data, size),
             "input_floor": np.array([input_floor(model, f).max() / f.design_size for f in data.items])}
 
 
@@ -102,7 +131,12 @@ def markdown(report: dict) -> str:
                   f"| FEA motion in step k | {pct(m['motion'])} |",
                   f"| final error, rollout from FEA frame k-1 | {pct(m['final_from_start'])} |",
                   f"| beam chord direction error (deg) | {deg(m['chord_error_deg'])} |",
-                  f"| FEA beam chord rotation since frame 0 (deg) | {deg(m['chord_rotation_deg'])} |", "",
+                  f"| FEA beam chord rotation since frame 0 (deg) | {deg(m['chord_rotation_deg'])} |",
+                  *(row for kind in ("joint", "beam") for row in (
+                      f"| {kind}s: orientation error, rigid fit (deg) | {deg(m[f'{kind}_orientation_error_deg'])} |",
+                      f"| {kind}s: FEA turn since frame 0 (deg) | {deg(m[f'{kind}_turn_deg'])} |",
+                      f"| {kind}s: centroid placement error | {pct(m[f'{kind}_placement'])} |",
+                      f"| {kind}s: shape error after the rigid fit | {pct(m[f'{kind}_shape'])} |")), "",
                   f"input floor (PCA'd geometry): median {100 * m['input_floor']:.3f} %", ""]
     return "\n".join(lines)
 
@@ -114,6 +148,8 @@ def plot(report: dict, path: Path) -> None:
         k = np.arange(1, len(m["chord_error_deg"]) + 1)
         ax.plot(k, m["chord_error_deg"], "o-", label="beam chord direction error")
         ax.plot(k, m["chord_rotation_deg"], "^:", label="FEA beam chord rotation since frame 0")
+        ax.plot(k, m["joint_orientation_error_deg"], "s-", label="joint orientation error (rigid fit)")
+        ax.plot(k, m["joint_turn_deg"], "v:", label="FEA joint turn since frame 0")
         ax.set_xlabel("frame k")
         ax.grid(alpha=0.3)
     axes[1][0].set_ylabel("degrees (median over beams, then designs)")

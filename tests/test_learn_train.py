@@ -381,6 +381,10 @@ def test_diagnose_separates_one_step_from_rollout_error_per_split(trained, tmp_p
         assert m["motion"][0] > 0 and m["input_floor"] >= 0
         assert len(m["chord_error_deg"]) == len(m["chord_rotation_deg"]) == 10
         assert all(0 <= x <= 180 for x in m["chord_error_deg"]) and 0 < m["chord_rotation_deg"][-1] <= 180
+        for kind in ("joint", "beam"):
+            assert len(m[f"{kind}_orientation_error_deg"]) == len(m[f"{kind}_placement"]) == 10
+            assert all(0 <= x <= 180 for x in m[f"{kind}_orientation_error_deg"] + m[f"{kind}_turn_deg"])
+            assert 0 < m[f"{kind}_turn_deg"][-1] and all(x >= 0 for x in m[f"{kind}_placement"] + m[f"{kind}_shape"])
     assert (tmp_path / "diagnose.md").exists() and (tmp_path / "diagnose.png").stat().st_size > 0
     with pytest.raises(ValueError, match=r"\['holdout'\] not in"):
         diagnose(cfg_for("diagnose", [f"checkpoint={run / 'best.pt'}", f"out_dir={tmp_path}", "splits=[holdout]"]))

@@ -1,0 +1,50 @@
+"""learn.rigid: Kabsch rotations and the split of a block's error into orientation, placement and shape."""
+import numpy as np
+import pytest
+
+from learn.rigid import best_rotation, block_parts, rotation_angle_deg
+
+
+def rotation(axis, angle_deg: float) -> np.ndarray:
+    """Rodrigues: the rotation by angle_deg about axis."""
+    k = np.asarray(axis, float) / np.linalg.norm(axis)
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    a = np.radians(angle_deg)
+    return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
+
+
+@pytest.fixture
+def block():
+    return np.random.default_rng(0).normal(scale=5.0, size=(12, 3))  # mm, a block's points
+
+
+def test_best_rotation_recovers_a_rotation_and_its_angle(block):
+    R = rotation([1.0, -2.0, 0.5], 37.0)
+    moved = block @ R.T + np.array([3.0, -1.0, 7.0])
+    np.testing.assert_allclose(best_rotation(block, moved), R, atol=1e-10)
+    assert rotation_angle_deg(best_rotation(block, moved)) == pytest.approx(37.0, abs=1e-6)
+    batch = best_rotation(np.stack([block, block]), np.stack([moved, block]))  # broadcasts over leading axes
+    np.testing.assert_allclose(batch[1], np.eye(3), atol=1e-10)
+
+
+def test_best_rotation_is_proper_even_for_a_mirror_image(block):
+    R = best_rotation(block, block * np.array([1.0, 1.0, -1.0]))
+    assert np.linalg.det(R) == pytest.approx(1.0)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-10)
+
+
+def test_block_parts_separate_turn_placement_and_shape(block):
+    truth = block @ rotation([0, 1, 1], 30.0).T + np.array([10.0, 0.0, 0.0])
+    centre = truth.mean(0)
+    off = np.array([0.3, -0.4, 0.0])  # mm, 0.5 mm away
+    turned = (truth - centre) @ rotation([1, 0, 0], 5.0).T + centre + off
+    parts = block_parts(turned, truth, block)
+    assert parts["orientation_error_deg"] == pytest.approx(5.0, abs=1e-6)
+    assert parts["turn_deg"] == pytest.approx(30.0, abs=1e-6)
+    assert parts["placement"] == pytest.approx(0.5, abs=1e-9)
+    assert parts["shape"] == pytest.approx(0.0, abs=1e-9)
+    swollen = centre + 1.1 * (truth - centre)  # no turn, no move: all shape
+    parts = block_parts(swollen, truth, block)
+    assert parts["orientation_error_deg"] == pytest.approx(0.0, abs=1e-5)
+    assert parts["placement"] == pytest.approx(0.0, abs=1e-9)
+    assert parts["shape"] == pytest.approx(0.1 * np.linalg.norm(truth - centre, axis=1).max(), rel=1e-9)
