@@ -1,7 +1,6 @@
 """Episodes on disk -> features, a split by episode, rotation augmentation, and graph sets for batched training."""
 from __future__ import annotations
 
-import functools
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -11,9 +10,10 @@ import torch
 
 from data_schema.episode import read_episode
 from learn.features import EpisodeFeatures, extract
+from learn import frames
 from learn.graph import BEAM, JOINT, GraphIndex, disjoint_union
 from learn.model import Static
-from learn.symmetry import ZRotations, rotation_angles, rotation_z, state_rotation, term_rotation
+from learn.symmetry import rotation_angles, rotation_z
 
 SPLITS = ("train", "val", "test")
 
@@ -84,24 +84,30 @@ def lattice_turned(f: EpisodeFeatures, turns: int) -> list[EpisodeFeatures]:
     return [f, f.quarter_turned(), h, h.quarter_turned()]
 
 
+def labelled(features: list[EpisodeFeatures], mirror: bool = False, lattice_turns: int = 1) -> list[EpisodeFeatures]:
+    """Each episode labelled from `lattice_turns` corners of its lattice (lattice_turned), with mirror each of those
+    also as its mirror image (EpisodeFeatures.mirrored): the copies augment turns."""
+    features = [g for f in features for g in lattice_turned(f, lattice_turns)]
+    return [g for f in features for g in ((f, f.mirrored()) if mirror else (f,))]
+
+
+def augment_angles(n: int, rotations: int, seed: int) -> np.ndarray:
+    """[n, rotations] the angles about z augment turns each of n copies by: spread over a full turn, with a random
+    offset per copy drawn in order from `seed`."""
+    rng = np.random.default_rng(seed)
+    return np.stack([rotation_angles(rotations, rng) for _ in range(n)]) if n else np.zeros((0, rotations))
+
+
 def augment(features: list[EpisodeFeatures], rotations: int, seed: int, mirror: bool = False,
             lattice_turns: int = 1) -> list[EpisodeFeatures]:
-    """Each episode labelled from `lattice_turns` corners of its lattice (lattice_turned), with mirror each of those
-    also as its mirror image (EpisodeFeatures.mirrored), all rotated about z (through the fixed joint) by `rotations`
-    angles spread over a full turn, with a random offset per episode; rotations <= 1 keeps them as they are."""
-    features = [g for f in features for g in lattice_turned(f, lattice_turns)]
-    features = [g for f in features for g in ((f, f.mirrored()) if mirror else (f,))]
+    """The labelled copies of each episode (labelled: lattice corners, mirror), all rotated about z (through the
+    fixed joint) by `rotations` angles spread over a full turn, with a random offset per copy (augment_angles);
+    rotations <= 1 keeps them as they are."""
+    features = labelled(features, mirror, lattice_turns)
     if rotations <= 1:
-        return list(features)
-    rng = np.random.default_rng(seed)
-    return [f.rotated(rotation_z(a)) for f in features for a in rotation_angles(rotations, rng)]
-
-
-@functools.cache
-def z_rotations(block, part: str) -> ZRotations:
-    """Rotations about z of a block's state (part "state") or boundary-condition terms ("bc"), for any angles."""
-    return ZRotations((lambda R: state_rotation(block, R)) if part == "state" else
-                      (lambda R: term_rotation(block.bc, R)))
+        return features
+    angles = augment_angles(len(features), rotations, seed)
+    return [f.rotated(rotation_z(a)) for f, row in zip(features, angles) for a in row]
 
 
 @dataclass
@@ -158,16 +164,54 @@ class GraphSet:
 
     def rotated(self, angles) -> "GraphSet":
         """Every item turned about z (through its fixed joint, the features' origin) by its own angle: states and
-        boundary-condition terms as EpisodeFeatures.rotated turns them, computed on the stacked tensors."""
+        boundary-condition terms as EpisodeFeatures.rotated turns them (points and vectors R v, stresses R s R^T),
+        computed on the stacked tensors."""
         if len(angles) != len(self):
             raise ValueError(f"{len(angles)} angles for {len(self)} items")
+        a = torch.as_tensor(np.asarray(angles, dtype=np.float64))
+        c, s, zero, one = torch.cos(a), torch.sin(a), torch.zeros_like(a), torch.ones_like(a)
+        R = torch.stack([torch.stack([c, -s, zero], -1), torch.stack([s, c, zero], -1),
+                         torch.stack([zero, zero, one], -1)], -2).to(torch.float32)  # [n, 3, 3]
         out = {}
         for name, block, offsets in (("joint", JOINT, self.joint_offsets), ("beam", BEAM, self.beam_offsets)):
-            rows = torch.as_tensor(np.repeat(np.arange(len(self)), np.diff(offsets)))
-            S, D = (torch.as_tensor(z_rotations(block, part)(angles), dtype=torch.float32)[rows]
-                    for part in ("state", "bc"))
-            out[name] = torch.einsum("fns,nst->fnt", getattr(self, f"{name}_state"), S)
-            out[f"{name}_bc"] = torch.einsum("ns,nst->nt", getattr(self.static, f"{name}_bc"), D)
+            Rn = R[torch.as_tensor(np.repeat(np.arange(len(self)), np.diff(offsets)))]  # [nodes, 3, 3]
+            out[name] = frames.rotate_state(getattr(self, f"{name}_state"), block, Rn, to_local=False)  # every frame
+            bc = getattr(self.static, f"{name}_bc").clone()
+            for sl in block.bc.slices("point") + block.bc.slices("vector"):
+                bc[:, sl] = frames.rotate_vectors(bc[:, sl], Rn, to_local=False)
+            out[f"{name}_bc"] = bc
         return GraphSet(items=self.items, t=self.t, joint_state=out["joint"], beam_state=out["beam"],
                         static=Static(out["joint_bc"], out["beam_bc"], self.static.index),
                         joint_offsets=self.joint_offsets, beam_offsets=self.beam_offsets)
+
+    def turned_copies(self, angles: np.ndarray) -> "GraphSet":
+        """[n, R] angles -> one set of every item turned by each of its R angles, item-major (the order augment
+        gives): what a TurnedSet trains on, held in memory at once (to fit the PCA and normalisers on)."""
+        n, R = angles.shape
+        return GraphSet.build([f for f in self.items for _ in range(R)]).rotated(angles.ravel())
+
+
+@dataclass
+class TurnedSet:
+    """A training set that turns its copies about z per batch instead of holding them: item i of `base` in each of
+    its angles[i] (drawn once, augment_angles). Its batches are the stored set's, augment(..., rotations=R) built as
+    one GraphSet, item for item and in the same shuffled order, to float32 round-off; it holds 1/R of the memory and
+    pays a rotation per batch (conf/train.yaml rotations_stored=false)."""
+
+    base: GraphSet
+    angles: np.ndarray  # [n items, R]
+
+    def __len__(self) -> int:
+        return self.angles.size
+
+    def batches(self, batch_size: int | None, generator: torch.Generator, rotations: int = 1) -> list[GraphSet]:
+        if rotations > 1:
+            raise ValueError("a TurnedSet has its angles; new angles per epoch (rotations_redraw) turn the base set")
+        n, R = self.angles.shape
+        total = n * R
+        if not batch_size or batch_size <= 0 or batch_size >= total:
+            return [self.base.turned_copies(self.angles)]
+        order = torch.randperm(total, generator=generator).tolist()
+        return [GraphSet.build([self.base.items[k // R] for k in chunk]).rotated([self.angles[k // R, k % R]
+                                                                                   for k in chunk])
+                for chunk in (order[s:s + batch_size] for s in range(0, total, batch_size))]

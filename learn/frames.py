@@ -10,8 +10,7 @@ import torch
 
 from learn.graph import BEAM, JOINT, Block, GraphIndex
 
-_VOIGT_TO_TENSOR = torch.tensor([[0, 3, 4], [3, 1, 5], [4, 5, 2]])  # xx yy zz xy xz yz -> 3 x 3
-_TENSOR_ROWS, _TENSOR_COLS = torch.tensor([0, 1, 2, 0, 0, 1]), torch.tensor([0, 1, 2, 1, 2, 2])
+_TENSOR_ROWS, _TENSOR_COLS = torch.tensor([0, 1, 2, 0, 0, 1]), torch.tensor([0, 1, 2, 1, 2, 2])  # Voigt xx yy zz xy xz yz
 
 
 def orthonormal(along: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
@@ -67,12 +66,19 @@ def rotate_vectors(x: torch.Tensor, R: torch.Tensor, to_local: bool) -> torch.Te
     return torch.einsum(eq, R, v).flatten(-2)
 
 
+def stress_rotation(R: torch.Tensor) -> torch.Tensor:
+    """[..., 3, 3] rotations -> [..., 6, 6] Q with Voigt(R s R^T) = Q Voigt(s): row (a, b), column (c, d) holds
+    R_ac R_bd + R_ad R_bc (the second term only for c != d, whose entry stands for both s_cd and s_dc)."""
+    rows, cols = _TENSOR_ROWS, _TENSOR_COLS
+    Rr, Rc = R[..., rows, :], R[..., cols, :]  # [..., 6, 3]: R_a. and R_b. of every row (a, b)
+    off = (rows != cols).to(R.dtype)
+    return Rr[..., rows] * Rc[..., cols] + off * Rr[..., cols] * Rc[..., rows]
+
+
 def rotate_stresses(x: torch.Tensor, R: torch.Tensor, to_local: bool) -> torch.Tensor:
     """[..., n, 6k] stacked Voigt stresses -> R^T s R (to_local) or R s R^T."""
-    s = x.unflatten(-1, (-1, 6))[..., _VOIGT_TO_TENSOR]  # [..., n, k, 3, 3]
-    Rk = R.unsqueeze(-3)  # [..., n, 1, 3, 3]
-    t = Rk.transpose(-1, -2) @ s @ Rk if to_local else Rk @ s @ Rk.transpose(-1, -2)
-    return t[..., _TENSOR_ROWS, _TENSOR_COLS].flatten(-2)
+    Q = stress_rotation(R.transpose(-1, -2) if to_local else R)  # [..., n, 6, 6]
+    return (x.unflatten(-1, (-1, 6)) @ Q.transpose(-1, -2)).flatten(-2)
 
 
 def rotate_state(x: torch.Tensor, block: Block, R: torch.Tensor, to_local: bool) -> torch.Tensor:

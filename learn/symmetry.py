@@ -81,29 +81,6 @@ def state_rotation(block, R: np.ndarray) -> np.ndarray:
     return state_matrix(block, lambda term: term_rotation(term, R))
 
 
-_Z_BASIS_ANGLES = np.arange(5) * 0.6  # five distinct angles: the harmonics below are independent on them
-
-
-def _z_harmonics(angles) -> np.ndarray:
-    """[n, 5] (1, cos a, sin a, cos 2a, sin 2a): every entry of a rotation about z by a acting on points, vectors and
-    (second-order) stress tensors is a combination of these."""
-    a = np.asarray(angles, dtype=np.float64)[:, None]
-    return np.concatenate([np.ones_like(a), np.cos(a), np.sin(a), np.cos(2 * a), np.sin(2 * a)], axis=1)
-
-
-class ZRotations:
-    """The matrices matrix_of(rotation_z(a)) [n, S, S] for any angles at the cost of one product: matrix_of (e.g.
-    lambda R: state_rotation(JOINT, R)) is evaluated at five angles once and fitted exactly on the five harmonics."""
-
-    def __init__(self, matrix_of):
-        samples = np.stack([matrix_of(rotation_z(a)) for a in _Z_BASIS_ANGLES])  # [5, S, S]
-        self.shape = samples.shape[1:]
-        self.coeffs = np.linalg.solve(_z_harmonics(_Z_BASIS_ANGLES), samples.reshape(5, -1))  # [5, S * S]
-
-    def __call__(self, angles) -> np.ndarray:
-        return (_z_harmonics(angles) @ self.coeffs).reshape(-1, *self.shape)
-
-
 MIRROR = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # reflection x <-> y through the origin
 # A relabelling moves every field (and rebuilt point) to the name it has in the relabelled design: name parts
 # ("_"-separated) are renamed one by one. Width vectors (half of right edge -> left edge) change sign whenever left

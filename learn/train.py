@@ -15,7 +15,8 @@ from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from learn import checkpoint
 from learn.conditions import envelope
-from learn.dataset import GraphSet, augment, episode_paths, extend_split, load_features, split_names
+from learn.dataset import (GraphSet, TurnedSet, augment, augment_angles, episode_paths, extend_split, load_features,
+                           split_names)
 from learn.metrics import multistep_loss, rollout_errors
 from learn.model import (Simulator, integer_in, rollout_lattice_turns_checked, rollout_rotations_checked,
                          term_retention)
@@ -32,6 +33,23 @@ def augmented(features: list, cfg, rotations: int | None = None) -> list:
         raise ValueError(f"mirror={cfg.mirror!r}: must be true or false")
     return augment(features, cfg.rotations if rotations is None else rotations, cfg.seed, cfg.mirror,
                    cfg.get("lattice_turns", 1))
+
+
+def training_sets(designs: list, cfg) -> tuple[GraphSet | TurnedSet, GraphSet]:
+    """-> (what train_epoch draws batches from, what the PCA and normalisers are fitted on). rotations_stored (the
+    default): one GraphSet of every augmented copy, both. rotations_stored=false: the labelled copies once, turned per
+    batch by the angles augment would draw (TurnedSet: the same batches, 1/rotations of the memory); the turned set
+    is built only for the fit. rotations_redraw: the labelled copies once, turned per batch by new angles."""
+    stored = cfg.get("rotations_stored", True)
+    if not isinstance(stored, bool):
+        raise ValueError(f"rotations_stored={stored!r}: must be true or false")
+    redraw = cfg.get("rotations_redraw", False)
+    if stored or cfg.rotations <= 1:
+        fit_set = GraphSet.build(augmented(designs, cfg))
+        return (GraphSet.build(augmented(designs, cfg, rotations=1)) if redraw else fit_set), fit_set
+    base = GraphSet.build(augmented(designs, cfg, rotations=1))
+    angles = augment_angles(len(base), cfg.rotations, cfg.seed)
+    return (base if redraw else TurnedSet(base, angles)), base.turned_copies(angles)
 
 
 def model_args(cfg_model: DictConfig) -> dict:
@@ -185,7 +203,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
         split = {**split, "train": split["train"][:keep]}
     log.info("episodes: %s", {s: len(v) for s, v in split.items()})
     train_envelope = envelope([by_name[n].conditions for n in split["train"]])  # physics the graphs do not carry
-    train_set = GraphSet.build(augmented([by_name[n] for n in split["train"]], cfg))  # PCA, normalisers fit on it
+    train_set, fit_set = training_sets([by_name[n] for n in split["train"]], cfg)
     val_set = GraphSet.build([by_name[n] for n in split["val"] or split["train"]])
 
     torch.manual_seed(cfg.seed)
@@ -195,10 +213,9 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
             log.info("initialised from %s (epoch %d); model args from it, conf model ignored", cfg.init_from,
                      init["epoch"])
     else:
-        model = Simulator.fit(model_args(cfg.model), train_set.joint_state, train_set.beam_state, train_set.static,
+        model = Simulator.fit(model_args(cfg.model), fit_set.joint_state, fit_set.beam_state, fit_set.static,
                               retention_of(cfg), cfg.delta_std_floor)
-    if cfg.get("rotations_redraw", False):  # train on the designs as they are, turned per batch (train_epoch)
-        train_set = GraphSet.build(augmented([by_name[n] for n in split["train"]], cfg, rotations=1))
+    del fit_set  # with rotations_stored=false or rotations_redraw, the turned copies existed only for the fit
     log.info("PCA dims %s; %d parameters", {t: p.k for t, p in model.pca.items()}, model.n_parameters)
     floor = max(float(input_floor(model, f).max() / f.design_size) for f in val_set.items)
     log.info("input floor: the PCA'd geometry inputs rebuild the validation designs' points within %.3g %% of the "

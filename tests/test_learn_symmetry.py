@@ -14,7 +14,7 @@ import torch
 
 from data_schema.episode import read_episode
 from data_schema.testing import synthetic_episode
-from learn.dataset import GraphSet, augment
+from learn.dataset import GraphSet, TurnedSet, augment, augment_angles, labelled
 from learn.features import extract, rebuild_all_points
 from learn.graph import BEAM
 from learn.model import Simulator
@@ -199,3 +199,27 @@ def test_a_graph_set_turned_per_item_equals_the_set_of_turned_designs():
     first = [b.joint_state[0, b.joint_offsets[k]:b.joint_offsets[k + 1]] for b in batches
              for k, i in enumerate(b.items) if i.name == "ep1.h5"]  # its four copies, each turned its own way
     assert all(not torch.allclose(x, y, atol=1e-3) for n, x in enumerate(first) for y in first[n + 1:])
+
+
+def test_a_turned_set_gives_the_stored_sets_batches_at_a_fraction_of_the_memory():
+    """rotations_stored=false: the copies turned per batch (TurnedSet) are the stored augmented set's, batch for
+    batch in the same shuffled order, to float32 round-off; turned_copies is the whole stored set."""
+    fs = [extract(synthetic_episode(3, 3, 5, 3, 3, 5, seed=s), name=f"ep{s}.h5") for s in (1, 2, 3)]
+    rotations, seed = 4, 7
+    stored = GraphSet.build(augment(fs, rotations, seed, mirror=True, lattice_turns=2))
+    base = GraphSet.build(labelled(fs, mirror=True, lattice_turns=2))
+    turned = TurnedSet(base, augment_angles(len(base), rotations, seed))
+    assert len(turned) == len(stored) == 3 * 2 * 2 * rotations
+    close = lambda a, b: torch.allclose(a, b, atol=1e-5 * float(b.abs().max()))  # noqa: E731
+    whole = base.turned_copies(turned.angles)
+    assert close(whole.joint_state, stored.joint_state) and close(whole.beam_state, stored.beam_state)
+    assert close(whole.static.beam_bc, stored.static.beam_bc) and close(whole.static.joint_bc, stored.static.joint_bc)
+    got = turned.batches(5, torch.Generator().manual_seed(3))
+    want = stored.batches(5, torch.Generator().manual_seed(3))
+    assert [len(b) for b in got] == [len(b) for b in want] and len(got) == 10
+    for g, w in zip(got, want):
+        assert [i.name for i in g.items] == [i.name for i in w.items]
+        assert close(g.joint_state, w.joint_state) and close(g.beam_state, w.beam_state)
+        assert close(g.static.beam_bc, w.static.beam_bc) and torch.equal(g.index.senders, w.index.senders)
+    with pytest.raises(ValueError, match="rotations_redraw"):
+        turned.batches(5, torch.Generator(), rotations=4)
