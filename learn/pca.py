@@ -8,6 +8,22 @@ from torch import nn
 MIN_STD = 1e-6
 SCALE_FLOOR = 1e-3  # column scale >= this fraction of the term's RMS magnitude
 SIGMA_FLOOR = 0.05  # whitening never amplifies a standardised component by more than 1 / SIGMA_FLOOR
+CHUNK_ROWS = 1 << 18  # rows per float64 pass of the fits: their memory stays ~150 MB however many rows they see
+
+
+def chunks(x: np.ndarray, rows: int = CHUNK_ROWS):
+    """[n, D] -> float64 row blocks of at most `rows` rows (a fit of tens of millions of rows never holds a float64
+    copy of them all)."""
+    for start in range(0, len(x), rows):
+        yield np.asarray(x[start:start + rows], dtype=np.float64)
+
+
+def column_moments(x: np.ndarray, rows: int = CHUNK_ROWS) -> tuple[np.ndarray, np.ndarray]:
+    """[n, D] -> per-column mean and (population) std, in two float64 passes over row blocks."""
+    n = max(len(x), 1)
+    mean = sum((c.sum(axis=0) for c in chunks(x, rows)), np.zeros(x.shape[1])) / n
+    var = sum((((c - mean) ** 2).sum(axis=0) for c in chunks(x, rows)), np.zeros(x.shape[1])) / n
+    return mean, np.sqrt(var)
 
 
 class Normalizer(nn.Module):
@@ -19,15 +35,15 @@ class Normalizer(nn.Module):
         self.register_buffer("std", torch.ones(dim))
 
     @classmethod
-    def fit(cls, x: np.ndarray, floor: float = 0.0, groups: list[slice] | None = None) -> "Normalizer":
+    def fit(cls, x: np.ndarray, floor: float = 0.0, groups: list[slice] | None = None,
+            rows: int = CHUNK_ROWS) -> "Normalizer":
         """x [n, dim]; a column whose std is below `floor` times the mean std of its group of columns (groups:
         column slices of one unit, e.g. geometry and stress; default all columns) gets that value instead."""
-        x = np.asarray(x, dtype=np.float64)
-        std = x.std(axis=0)
+        mean, std = column_moments(x, rows)
         for g in groups or [slice(None)]:
             std[g] = np.maximum(std[g], max(floor * std[g].mean(), MIN_STD))
         n = cls(x.shape[1])
-        n.mean.copy_(torch.as_tensor(x.mean(axis=0)))
+        n.mean.copy_(torch.as_tensor(mean))
         n.std.copy_(torch.as_tensor(std))
         return n
 
@@ -65,15 +81,17 @@ class TermPCA(nn.Module):
         return self.components.shape[1]
 
     @classmethod
-    def fit(cls, x: np.ndarray, retention: float = 0.98) -> "TermPCA":
-        """x [n, D] training rows (training split only)."""
-        x = np.asarray(x, dtype=np.float64)
-        mean, std = x.mean(axis=0), x.std(axis=0)
+    def fit(cls, x: np.ndarray, retention: float = 0.98, rows: int = CHUNK_ROWS) -> "TermPCA":
+        """x [n, D] training rows (training split only); float64 passes over blocks of `rows` rows."""
+        n = max(len(x), 1)
+        mean, std = column_moments(x, rows)
         # near-constant columns (a rigid joint's shape in its own frame) are not blown up to unit variance:
-        # their scale is floored at SCALE_FLOOR times the term's RMS magnitude
-        scale = np.maximum(std, max(SCALE_FLOOR * np.sqrt(np.mean(x ** 2)), MIN_STD))
-        xs = (x - mean) / scale
-        eigval, eigvec = np.linalg.eigh(xs.T @ xs / max(len(xs), 1))
+        # their scale is floored at SCALE_FLOOR times the term's RMS magnitude (sqrt of the mean of x^2)
+        rms = np.sqrt(np.mean(std ** 2 + mean ** 2))
+        scale = np.maximum(std, max(SCALE_FLOOR * rms, MIN_STD))
+        standardised = lambda c: (c - mean) / scale  # noqa: E731
+        cov = sum((standardised(c).T @ standardised(c) for c in chunks(x, rows)), np.zeros((x.shape[1],) * 2)) / n
+        eigval, eigvec = np.linalg.eigh(cov)
         order = np.argsort(eigval)[::-1]
         eigval, eigvec = np.clip(eigval[order], 0.0, None), eigvec[:, order]
         total = eigval.sum()
@@ -84,9 +102,12 @@ class TermPCA(nn.Module):
             k = min(k, x.shape[1])
         p = cls(x.shape[1], k)
         sigma = np.sqrt(np.maximum(eigval[:k], SIGMA_FLOOR ** 2))
-        z = xs @ eigvec[:, :k] / sigma
+        lo, hi = np.full(k, np.inf), np.full(k, -np.inf)  # the training range of the coefficients
+        for c in chunks(x, rows):
+            z = standardised(c) @ eigvec[:, :k] / sigma
+            lo, hi = np.minimum(lo, z.min(axis=0)), np.maximum(hi, z.max(axis=0))
         for name, value in (("mean", mean), ("scale", scale), ("components", eigvec[:, :k]), ("sigma", sigma),
-                            ("lo", z.min(axis=0)), ("hi", z.max(axis=0)),
+                            ("lo", lo), ("hi", hi),
                             ("explained", eigval[:k].sum() / total if total > 0 else 1.0)):
             getattr(p, name).copy_(torch.as_tensor(value))
         return p

@@ -377,3 +377,29 @@ def test_model_activation_is_every_hidden_nonlinearity(features, core):
     assert torch.nn.SiLU in kinds and torch.nn.ReLU not in kinds
     j, b = model.step(data.joint_state[:2], data.beam_state[:2], data.static, data.t[:2])
     assert torch.isfinite(j).all() and torch.isfinite(b).all()
+
+
+def test_pca_and_normaliser_fits_in_row_blocks_equal_the_one_pass_formulas():
+    """The fits pass over float64 row blocks (memory bounded however many rows); the statistics are the textbook
+    ones computed on the whole array at once, to round-off, for blocks of any size."""
+    from learn.pca import Normalizer, TermPCA
+    rng = np.random.default_rng(0)
+    x = (rng.normal(size=(1001, 5)) @ rng.normal(size=(5, 5)) + [3.0, -1.0, 0.0, 200.0, 0.5]).astype(np.float32)
+    x[:, 2] = 1e-9 * rng.normal(size=1001)  # a near-constant column: its scale is floored
+    x64 = x.astype(np.float64)
+    mean, std = x64.mean(axis=0), x64.std(axis=0)
+    scale = np.maximum(std, 1e-3 * np.sqrt(np.mean(x64 ** 2)))
+    xs = (x64 - mean) / scale
+    eigval = np.sort(np.linalg.eigvalsh(xs.T @ xs / len(xs)))[::-1]
+    for rows in (7, 1000, 1 << 18):
+        p = TermPCA.fit(x, retention=1.0, rows=rows)
+        np.testing.assert_allclose(p.mean.numpy(), mean, rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(p.scale.numpy(), scale, rtol=1e-5)
+        assert p.k == 4  # every component with variance (the near-constant column has none)
+        np.testing.assert_allclose(p.sigma.numpy() ** 2, np.maximum(eigval[:4], 0.05 ** 2), rtol=1e-5)
+        z = p(torch.as_tensor(x64, dtype=p.components.dtype)).numpy()
+        np.testing.assert_allclose(p.lo.numpy(), z.min(axis=0), rtol=1e-4, atol=1e-4)
+        np.testing.assert_allclose(p.hi.numpy(), z.max(axis=0), rtol=1e-4, atol=1e-4)
+        n = Normalizer.fit(x, rows=rows)
+        np.testing.assert_allclose(n.mean.numpy(), mean, rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(n.std.numpy(), np.maximum(std, 1e-6), rtol=1e-5)
