@@ -9,8 +9,8 @@ import numpy as np
 import torch
 
 from data_schema.episode import read_episode
-from learn.features import EpisodeFeatures, extract
 from learn import frames
+from learn.features import EpisodeFeatures, extract
 from learn.graph import BEAM, JOINT, GraphIndex, disjoint_union
 from learn.model import Static
 from learn.symmetry import rotation_angles, rotation_z
@@ -187,8 +187,7 @@ class GraphSet:
     def turned_copies(self, angles: np.ndarray) -> "GraphSet":
         """[n, R] angles -> one set of every item turned by each of its R angles, item-major (the order augment
         gives): what a TurnedSet trains on, held in memory at once (to fit the PCA and normalisers on)."""
-        n, R = angles.shape
-        return GraphSet.build([f for f in self.items for _ in range(R)]).rotated(angles.ravel())
+        return GraphSet.build([f for f in self.items for _ in range(angles.shape[1])]).rotated(angles.ravel())
 
 
 @dataclass

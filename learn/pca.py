@@ -90,7 +90,7 @@ class TermPCA(nn.Module):
         rms = np.sqrt(np.mean(std ** 2 + mean ** 2))
         scale = np.maximum(std, max(SCALE_FLOOR * rms, MIN_STD))
         standardised = lambda c: (c - mean) / scale  # noqa: E731
-        cov = sum((standardised(c).T @ standardised(c) for c in chunks(x, rows)), np.zeros((x.shape[1],) * 2)) / n
+        cov = sum((xs.T @ xs for xs in map(standardised, chunks(x, rows))), np.zeros((x.shape[1],) * 2)) / n
         eigval, eigvec = np.linalg.eigh(cov)
         order = np.argsort(eigval)[::-1]
         eigval, eigvec = np.clip(eigval[order], 0.0, None), eigvec[:, order]

@@ -17,7 +17,7 @@ def best_rotation(source: np.ndarray, target: np.ndarray) -> np.ndarray:
     U, _, Vt = np.linalg.svd(np.swapaxes(s, -1, -2) @ t)
     V, Ut = np.swapaxes(Vt, -1, -2), np.swapaxes(U, -1, -2)
     D = np.broadcast_to(np.eye(3), V.shape).copy()
-    D[..., 2, 2] = np.sign(np.linalg.det(V @ Ut))
+    D[..., 2, 2] = np.where(np.linalg.det(V @ Ut) < 0, -1.0, 1.0)  # never a reflection
     return V @ D @ Ut
 
 
