@@ -1,7 +1,7 @@
 """Episodes on disk -> features, a split by episode, rotation augmentation, and graph sets for batched training."""
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -144,8 +144,9 @@ class GraphSet:
     def __len__(self) -> int:
         return len(self.items)
 
-    def batches(self, batch_size: int | None, generator: torch.Generator, rotations: int = 1) -> list["GraphSet"]:
-        """Shuffled mini-batches of items (batch_size None or <= 0: the whole set, batch gradient descent).
+    def batches(self, batch_size: int | None, generator: torch.Generator, rotations: int = 1) -> Iterable["GraphSet"]:
+        """Shuffled mini-batches of items (batch_size None or <= 0: the whole set, batch gradient descent), built one
+        at a time as they are iterated (the order and angles are drawn at the call).
         rotations > 1: every item `rotations` times, the copies turned about z by angles spread over a turn from a
         random offset per item, drawn from `generator`: new angles at every call (augment draws them once)."""
         n = len(self.items)
@@ -156,11 +157,10 @@ class GraphSet:
         batch_size = n * copies if whole else batch_size
         order = torch.randperm(n * copies, generator=generator).tolist()
         if copies == 1:
-            return [GraphSet.build([self.items[i] for i in order[s:s + batch_size]]) for s in range(0, n, batch_size)]
+            return (GraphSet.build([self.items[i] for i in order[s:s + batch_size]]) for s in range(0, n, batch_size))
         offsets = torch.rand(n, generator=generator, dtype=torch.float64).numpy() * 2.0 * np.pi / copies
-        angle = lambda c: offsets[c % n] + 2.0 * np.pi * (c // n) / copies  # noqa: E731  copy c of item c % n
-        return [GraphSet.build([self.items[c % n] for c in chunk]).rotated([angle(c) for c in chunk])
-                for chunk in (order[s:s + batch_size] for s in range(0, len(order), batch_size))]
+        return turned_batches(self.items, order, batch_size,  # copy c: item c % n, its (c // n)-th angle
+                              lambda c: (c % n, offsets[c % n] + 2.0 * np.pi * (c // n) / copies))
 
     def rotated(self, angles) -> "GraphSet":
         """Every item turned about z (through its fixed joint, the features' origin) by its own angle: states and
@@ -190,6 +190,15 @@ class GraphSet:
         return GraphSet.build([f for f in self.items for _ in range(angles.shape[1])]).rotated(angles.ravel())
 
 
+def turned_batches(items: list[EpisodeFeatures], order: list[int], batch_size: int,
+                   copy) -> Iterator[GraphSet]:
+    """Mini-batches of the copies `order` lists, `batch_size` at a time, each built only when it is reached (an
+    epoch never holds more than one): copy k is items[i] turned about z by angle a, (i, a) = copy(k)."""
+    for start in range(0, len(order), batch_size):
+        pairs = [copy(k) for k in order[start:start + batch_size]]
+        yield GraphSet.build([items[i] for i, _ in pairs]).rotated([a for _, a in pairs])
+
+
 @dataclass
 class TurnedSet:
     """A training set that turns its copies about z per batch instead of holding them: item i of `base` in each of
@@ -203,7 +212,8 @@ class TurnedSet:
     def __len__(self) -> int:
         return self.angles.size
 
-    def batches(self, batch_size: int | None, generator: torch.Generator, rotations: int = 1) -> list[GraphSet]:
+    def batches(self, batch_size: int | None, generator: torch.Generator, rotations: int = 1) -> Iterable[GraphSet]:
+        """As GraphSet.batches, each copy turned by its own fixed angle; the order is drawn at the call."""
         if rotations > 1:
             raise ValueError("a TurnedSet has its angles; new angles per epoch (rotations_redraw) turn the base set")
         n, R = self.angles.shape
@@ -211,6 +221,4 @@ class TurnedSet:
         if not batch_size or batch_size <= 0 or batch_size >= total:
             return [self.base.turned_copies(self.angles)]
         order = torch.randperm(total, generator=generator).tolist()
-        return [GraphSet.build([self.base.items[k // R] for k in chunk]).rotated([self.angles[k // R, k % R]
-                                                                                   for k in chunk])
-                for chunk in (order[s:s + batch_size] for s in range(0, total, batch_size))]
+        return turned_batches(self.base.items, order, batch_size, lambda k: (k // R, self.angles[k // R, k % R]))

@@ -110,6 +110,12 @@ def weight_average(model: Simulator, decay: float) -> AveragedModel | None:
     return AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(float(decay)), use_buffers=False)
 
 
+def loss_terms(cfg: DictConfig) -> dict:
+    """What the loss weighs besides the state columns (learn.metrics.multistep_loss keywords), for training and
+    validation alike."""
+    return {"geometry": cfg.get("loss_geometry", "columns"), "chord_weight": float(cfg.get("chord_weight", 0.0))}
+
+
 def train_epoch(model: Simulator, opt: torch.optim.Optimizer, train_set: GraphSet, cfg: DictConfig,
                 epoch: int, average: AveragedModel | None = None) -> list[float]:
     """One pass over shuffled mini-batches at the epoch's learning rate (and the weight average after every step,
@@ -121,9 +127,7 @@ def train_epoch(model: Simulator, opt: torch.optim.Optimizer, train_set: GraphSe
     redrawn = cfg.rotations if cfg.get("rotations_redraw", False) else 1  # else augment turned the set once
     for batch in train_set.batches(cfg.batch_size, gen, redrawn):
         loss = multistep_loss(model, batch, cfg.rollout_horizon, cfg.noise_std, cfg.stress_weight, gen,
-                              geometry=cfg.get("loss_geometry", "columns"),
-                              through=cfg.get("rollout_gradient", "through") == "through",
-                              chord_weight=float(cfg.get("chord_weight", 0.0)))
+                              through=cfg.get("rollout_gradient", "through") == "through", **loss_terms(cfg))
         opt.zero_grad()
         loss.backward()
         if cfg.optim.grad_clip:
@@ -138,9 +142,7 @@ def train_epoch(model: Simulator, opt: torch.optim.Optimizer, train_set: GraphSe
 def evaluate_split(model: Simulator, data: GraphSet, cfg: DictConfig) -> dict:
     model.eval()
     with torch.no_grad():
-        loss = float(multistep_loss(model, data, cfg.rollout_horizon, 0.0, cfg.stress_weight,
-                                     geometry=cfg.get("loss_geometry", "columns"),
-                                     chord_weight=float(cfg.get("chord_weight", 0.0))))
+        loss = float(multistep_loss(model, data, cfg.rollout_horizon, 0.0, cfg.stress_weight, **loss_terms(cfg)))
     max_err, _ = rollout_errors(model, data)
     model.train()
     worst = max_err.max(axis=1)  # [items] max over frames

@@ -193,7 +193,7 @@ def test_a_graph_set_turned_per_item_equals_the_set_of_turned_designs():
     for a, b in ((got.joint_state, want.joint_state), (got.beam_state, want.beam_state),
                  (got.static.joint_bc, want.static.joint_bc), (got.static.beam_bc, want.static.beam_bc)):
         assert torch.allclose(a, b, atol=1e-4 * float(b.abs().max()))
-    batches = GraphSet.build(fs).batches(3, torch.Generator().manual_seed(0), rotations=4)
+    batches = list(GraphSet.build(fs).batches(3, torch.Generator().manual_seed(0), rotations=4))
     assert sorted(len(b) for b in batches) == [2, 3, 3] and sorted(i.name for b in batches for i in b.items) == \
         ["ep1.h5"] * 4 + ["ep2.h5"] * 4
     first = [b.joint_state[0, b.joint_offsets[k]:b.joint_offsets[k + 1]] for b in batches
@@ -214,8 +214,8 @@ def test_a_turned_set_gives_the_stored_sets_batches_at_a_fraction_of_the_memory(
     whole = base.turned_copies(turned.angles)
     assert close(whole.joint_state, stored.joint_state) and close(whole.beam_state, stored.beam_state)
     assert close(whole.static.beam_bc, stored.static.beam_bc) and close(whole.static.joint_bc, stored.static.joint_bc)
-    got = turned.batches(5, torch.Generator().manual_seed(3))
-    want = stored.batches(5, torch.Generator().manual_seed(3))
+    got = list(turned.batches(5, torch.Generator().manual_seed(3)))
+    want = list(stored.batches(5, torch.Generator().manual_seed(3)))
     assert [len(b) for b in got] == [len(b) for b in want] and len(got) == 10
     for g, w in zip(got, want):
         assert [i.name for i in g.items] == [i.name for i in w.items]
