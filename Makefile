@@ -12,7 +12,7 @@ export OMPI_ALLOW_RUN_AS_ROOT=1
 export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset reference-data validate bench-fea stability bench-rollout tradeoff train evaluate diagnose predict sweep learned-extremes clean
+.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset reference-data validate bench-fea stability bench-rollout tradeoff train evaluate reference-train reference-evaluate compare diagnose predict sweep learned-extremes clean
 
 help:  ## list the targets
 	@grep -E '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-12s %s\n", $$1, $$2}'
@@ -48,6 +48,18 @@ train:  ## train the Double GN on the episodes in OUT (resumes runs/train/last.p
 
 evaluate:  ## roll out the trained model on the held-out split; report in runs/evaluate/
 	$(PY) -m learn.evaluate data_dir=$(OUT)
+
+reference-train:  ## the full-scale reference training (conf/experiment/reference.yaml; data from make reference-data; ~2 h, one core; resumable)
+	$(PY) -m learn.train +experiment=reference $(ARGS)
+
+REF ?= reports/reference
+reference-evaluate:  ## CKPT (or CKPT='[a.pt,b.pt]', an ensemble) on the 102 held-out designs: 52 pinned of data/ds_default + data/ds_heldout -> REF/102 (REF=reports/reference)
+	$(PY) -m learn.evaluate "checkpoint=$(or $(CKPT),runs/reference/best.pt)" data_dir=data/ds_default split=val+test plots=false threads=1 out_dir=$(REF)/52 $(ARGS)
+	$(PY) -m learn.evaluate "checkpoint=$(or $(CKPT),runs/reference/best.pt)" data_dir=data/ds_heldout split=all timing_repeats=1 plots=false threads=1 out_dir=$(REF)/fresh $(ARGS)
+	$(PY) -m learn.combine 'reports=[$(REF)/52,$(REF)/fresh]' out_dir=$(REF)/102
+
+compare:  ## design-by-design comparison of reports against the first (REPORTS=a,b[,c]; LABELS=x,y[,z]; reports/compare/)
+	$(PY) -m learn.compare 'reports=[$(REPORTS)]' $(if $(LABELS),'labels=[$(LABELS)]') out_dir=$(or $(CMP),reports/compare)
 
 diagnose:  ## where a checkpoint's error comes from: one-step vs rollout, train vs test (CKPT=runs/train/best.pt; runs/diagnose/)
 	$(PY) -m learn.diagnose checkpoint=$(or $(CKPT),runs/train/best.pt)

@@ -449,3 +449,15 @@ def test_the_cosine_schedule_falls_from_the_base_rate_to_the_floor_and_an_unknow
     with pytest.raises(ValueError, match=re.escape("optim.schedule='linear': must be one of step | cosine")):
         train(cfg_for("train", tiny(data_dir, tmp_path / "bad", "epochs=1", "optim.schedule=linear")))
     assert not (tmp_path / "bad" / "last.pt").exists()
+
+
+def test_the_reference_experiment_composes_the_full_scale_recipe_over_the_defaults():
+    """conf/experiment/reference.yaml (make reference-train): the pinned held-out designs, the late drop, and
+    everything else the defaults (the model, augmentation)."""
+    cfg = cfg_for("train", ["+experiment=reference"])
+    default = cfg_for("train", [])
+    assert (cfg.data_dir, cfg.split_from, cfg.epochs, cfg.optim.lr_drop_at) == (
+        "data/ds_default", "conf/held_out/ds_default.yaml", 32, 0.65)
+    assert (REPO / cfg.split_from).exists()
+    assert cfg.model == default.model and cfg.lattice_turns == default.lattice_turns and cfg.mirror == default.mirror
+    assert cfg.optim.lr == default.optim.lr and cfg.batch_size == default.batch_size

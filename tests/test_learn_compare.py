@@ -1,0 +1,58 @@
+"""learn.compare: design-by-design comparison of reports (synthetic reports; no training)."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from learn.compare import compare, markdown
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def report(errors: dict[str, float], data_dir="data/a") -> dict:
+    return {"data_dir": data_dir, "designs": [{"name": n, "max_rel_error": e} for n, e in errors.items()]}
+
+
+def test_counts_and_median_ratio_are_per_design():
+    base = report({"d0": 0.10, "d1": 0.20, "d2": 0.40, "d3": 0.05})
+    other = report({"d3": 0.10, "d2": 0.20, "d1": 0.10, "d0": 0.05})  # another order: paired by name
+    out = compare([base, other], ["base", "other"])
+    row = out["rows"][1]
+    assert (row["better_on"], row["worse_on"]) == (3, 1)
+    assert row["median_ratio"] == pytest.approx(np.median([0.5, 0.5, 0.5, 2.0]))
+    assert out["rows"][0]["median"] == pytest.approx(0.15) and row["worst"] == pytest.approx(0.20)
+    assert out["base_worst_designs"][0]["name"] == "d2" and out["base_worst_designs"][0]["errors"] == [0.40, 0.20]
+    assert "3 of 4 (worse on 1) | x0.500" in markdown(out)
+
+
+def test_pooled_designs_are_told_apart_by_their_data_set():
+    """learn.combine reports carry each design's data_dir: the same episode name in two data sets is two designs."""
+    pooled = {"data_dir": "a, b", "designs": [{"name": "e0", "data_dir": "a", "max_rel_error": 0.1},
+                                              {"name": "e0", "data_dir": "b", "max_rel_error": 0.3}]}
+    other = {"data_dir": "a, b", "designs": [{"name": "e0", "data_dir": "b", "max_rel_error": 0.1},
+                                             {"name": "e0", "data_dir": "a", "max_rel_error": 0.2}]}
+    row = compare([pooled, other], ["p", "o"])["rows"][1]
+    assert (row["better_on"], row["worse_on"], row["n"]) == (1, 1, 2)
+
+
+def test_reports_over_other_designs_or_too_few_are_refused():
+    with pytest.raises(ValueError, match="other designs than a .*missing 1"):
+        compare([report({"d0": 0.1, "d1": 0.2}), report({"d0": 0.1})], ["a", "b"])
+    with pytest.raises(ValueError, match="at least 2"):
+        compare([report({"d0": 0.1})], ["a"])
+    with pytest.raises(ValueError, match="labels: 1 given for 2"):
+        compare([report({"d0": 0.1}), report({"d0": 0.1})], ["a"])
+
+
+def test_cli_writes_table_json_and_plot(tmp_path):
+    for name, errs in (("a", {"d0": 0.1, "d1": 0.2, "d2": 0.3}), ("b", {"d0": 0.05, "d1": 0.3, "d2": 0.1})):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "report.json").write_text(json.dumps(report(errs)))
+    subprocess.run([sys.executable, "-m", "learn.compare", f"reports=[{tmp_path / 'a'},{tmp_path / 'b'}]",
+                    "labels=[old,new]", f"out_dir={tmp_path / 'cmp'}"], cwd=REPO, check=True, capture_output=True)
+    result = json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    assert result["rows"][1]["label"] == "new" and result["rows"][1]["better_on"] == 2
+    assert (tmp_path / "cmp" / "compare.png").stat().st_size > 0 and (tmp_path / "cmp" / "compare.md").exists()
