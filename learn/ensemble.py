@@ -3,7 +3,7 @@
 the members' disagreement (member_spread) is reported with every rollout. Measured (session 10, two seeds, 25
 held-out designs): the ensemble beats the mean of its members on every design (x0.89) but only matches one network
 averaged over the mirror at the same cost, and its spread ranks the designs by error no better than symmetric
-copies do (Spearman 0.37), so it is not yet a validity signal (README, "Ensembles").
+copies do (Spearman 0.37), so it is not yet a validity signal (docs/learned_simulator.md, "Ensembles").
 
 Members must be independent trainings on the same held-out designs (another seed, another core): a design that
 one member trained on is not held out for the ensemble, so `load` refuses members whose splits differ.

@@ -36,7 +36,7 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
     from the state the model itself reached, to the FEA's next state.
     chord_weight > 0 adds the beams' half chords (beam_chords) in units of their FEA step std over the batch, weighted
     so: the turn of each beam relative to itself, which the absolute columns (whose step std is the motion of the
-    whole grid) weigh little, and which carried by the lever arm is most of the position error (README)."""
+    whole grid) weigh little, and which carried by the lever arm is most of the position error (docs/learned_simulator.md)."""
     if geometry not in ("columns", "points"):
         raise ValueError(f"loss geometry={geometry!r}: must be columns | points")
     F = len(batch.t)

@@ -62,7 +62,7 @@ class EncodeProcessDecode(nn.Module):
     to latents of one size, n_blocks residual ProcessorBlocks pass messages (one joint-beam-joint hop each), MLPs
     decode each joint's and beam's latent to dG. Reach grows with n_blocks at little arithmetic per block (its MLPs
     see latents, not the concatenated inputs of every block in the chain), but each block adds a fixed number of small
-    operations to every step, which is what a one-design rollout's time follows (README, session 8)."""
+    operations to every step, which is what a one-design rollout's time follows (docs/learned_simulator.md, session 8)."""
 
     def __init__(self, joint_in, beam_in, edge_in, joint_out, beam_out, latent: int, widths: list[int],
                  layer_norm: bool = True, n_blocks: int = 6, global_latent: int = 0, activation: str = "relu"):

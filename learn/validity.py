@@ -9,7 +9,7 @@ Symptoms, all measurable without FEA:
   training episodes (learn.conditions). The graphs do not carry them, so the other two checks cannot see them;
 - spread (ensembles only, learn.ensemble): the members disagree about a point by more than a fraction of the
   design size (off by default: measured in session 10, the spread of two seeds ranks designs by error no better
-  than the disagreement of one network's symmetric copies, Spearman 0.37; README "Ensembles").
+  than the disagreement of one network's symmetric copies, Spearman 0.37; docs/learned_simulator.md "Ensembles").
 """
 from __future__ import annotations
 
