@@ -149,6 +149,17 @@ def evaluate_split(model: Simulator, data: GraphSet, cfg: DictConfig) -> dict:
     return {"val_loss": loss, "val_rollout": float(worst.mean()), "val_rollout_worst": float(worst.max())}
 
 
+def fit_rollout(model: Simulator, probe: GraphSet | None) -> dict:
+    """The validation rollout measure on training designs (`train_probe` of them, as labelled): beside val_rollout
+    it says whether a run is limited by how well it fits (both high) or by how it generalises (a gap)."""
+    if probe is None:
+        return {}
+    model.eval()
+    max_err, _ = rollout_errors(model, probe)
+    model.train()
+    return {"train_rollout": float(max_err.max(axis=1).mean())}
+
+
 def append_result(path: str | Path, row: dict) -> None:
     """One row per run; the header is written by the first run."""
     path = Path(path)
@@ -177,6 +188,8 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
     schedule_checked(cfg.optim.get("schedule", "step"))
     if cfg.get("rollout_gradient", "through") not in ("through", "stop"):
         raise ValueError(f"rollout_gradient={cfg.rollout_gradient!r}: must be through | stop")
+    n_probe = integer_in(cfg.get("train_probe", 0), "train_probe", 0, 10**6,
+                         "training designs whose rollout error is logged every epoch; 0 = none")
     chord_weight = cfg.get("chord_weight", 0.0)
     if isinstance(chord_weight, bool) or not isinstance(chord_weight, (int, float)) or not 0 <= chord_weight <= 100:
         raise ValueError(f"chord_weight={chord_weight!r}: must be a number in [0, 100] (0 = no chord term)")
@@ -207,6 +220,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
     train_envelope = envelope([by_name[n].conditions for n in split["train"]])  # physics the graphs do not carry
     train_set, fit_set = training_sets([by_name[n] for n in split["train"]], cfg)
     val_set = GraphSet.build([by_name[n] for n in split["val"] or split["train"]])
+    probe = GraphSet.build([by_name[n] for n in split["train"][:n_probe]]) if n_probe and split["train"] else None
 
     torch.manual_seed(cfg.seed)
     if resumed or init:  # init_from: its weights, PCA, normalisers and model args; a fresh optimiser and history
@@ -259,7 +273,8 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
     for epoch in range(start, int(cfg.epochs)):
         losses = train_epoch(model, opt, train_set, cfg, epoch, average)
         row = {"epoch": epoch, "lr": learning_rate(cfg, epoch), "train_loss": float(np.mean(losses)),
-               **evaluate_split(answer, val_set, cfg), "seconds": time.perf_counter() - t0}
+               **evaluate_split(answer, val_set, cfg), **fit_rollout(answer, probe),
+               "seconds": time.perf_counter() - t0}
         history.append(row)
         if row[cfg.monitor] < best:
             best, bad = row[cfg.monitor], 0
@@ -267,8 +282,9 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
         else:
             bad += 1
         if epoch % int(cfg.log_every) == 0 or epoch == int(cfg.epochs) - 1:
-            log.info("epoch %d lr %.1e train %.4g val %.4g val_rollout %.4f (best %.4f) %.0fs", epoch, row["lr"],
-                     row["train_loss"], row["val_loss"], row["val_rollout"], best, row["seconds"])
+            fit = f" train_rollout {row['train_rollout']:.4f}" if "train_rollout" in row else ""
+            log.info("epoch %d lr %.1e train %.4g val %.4g val_rollout %.4f (best %.4f)%s %.0fs", epoch, row["lr"],
+                     row["train_loss"], row["val_loss"], row["val_rollout"], best, fit, row["seconds"])
         if bad >= int(cfg.patience):
             stop_reason = f"early stop: no {cfg.monitor} improvement in {bad} epochs"
             break
@@ -283,6 +299,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
                "best_epoch": best_row.get("epoch", -1), "monitor": cfg.monitor, "best": best,
                "best_val_loss": best_row.get("val_loss", math.nan),
                "best_val_rollout": best_row.get("val_rollout", math.nan),
+               "train_rollout_at_best": best_row.get("train_rollout", math.nan),
                "train_seconds": history[-1]["seconds"] if history else 0.0, "n_parameters": model.n_parameters,
                "input_floor": floor,
                "core": model.args["core"], "latent": model.args["latent"],

@@ -19,6 +19,7 @@ from learn.evaluate import evaluate
 from learn.dataset import GraphSet, augment, load_features
 from learn.features import extract, rebuild_all_points
 from learn.graph import BEAM
+from learn.metrics import rollout_errors
 from learn.model import Simulator
 from learn.rollout import reference, rollout
 from learn.train import evaluate_split, train
@@ -66,6 +67,19 @@ def test_training_reduces_loss_and_writes_a_weights_only_checkpoint(trained):
     assert any(k.startswith("pca.beam_stress.") for k in ckpt["state_dict"])  # PCA travels with the model
     model = checkpoint.load_model(run / "best.pt")
     assert model.args["core"] == "double_gn"
+
+
+def test_the_rollout_error_of_training_designs_is_logged_beside_validations(trained, data_dir):
+    """train_probe: every history row holds train_rollout, the validation rollout measure on the split's first
+    training designs as labelled; the last row's is what the last weights give on them."""
+    run, summary = trained
+    ckpt = torch.load(run / "last.pt", weights_only=True)
+    assert all(0 < row["train_rollout"] < 10 for row in ckpt["history"])
+    assert summary["train_rollout_at_best"] == next(r["train_rollout"] for r in ckpt["history"]
+                                                    if r["epoch"] == summary["best_epoch"])
+    probe = GraphSet.build(load_features([data_dir / n for n in ckpt["split"]["train"][:26]]))
+    max_err, _ = rollout_errors(checkpoint.load_model(run / "last.pt"), probe)
+    assert ckpt["history"][-1]["train_rollout"] == pytest.approx(float(max_err.max(axis=1).mean()), rel=1e-5)
 
 
 def test_training_resumes_from_the_last_checkpoint(data_dir, tmp_path):
@@ -331,7 +345,8 @@ def test_an_unknown_loss_geometry_is_refused(data_dir, tmp_path):
 
 @pytest.mark.parametrize("option, message", [("mirror=2", "mirror=2: must be true or false"),
                                              ("lattice_turns=3", r"lattice_turns=3: must be one of \[1, 2, 4\]"),
-                                             ("chord_weight=-1", r"chord_weight=-1: must be a number in \[0, 100\]")])
+                                             ("chord_weight=-1", r"chord_weight=-1: must be a number in \[0, 100\]"),
+                                             ("train_probe=-1", r"train_probe=-1: must be an integer in \[0, ")])
 def test_a_bad_augmentation_option_is_refused_naming_it(data_dir, tmp_path, option, message):
     with pytest.raises(ValueError, match=message):
         train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=1", option)))
