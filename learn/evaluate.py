@@ -33,10 +33,13 @@ def distribution(x) -> dict:
             "n": int(len(x))}
 
 
-def with_families(values: list[float], families: list[str]) -> dict:
+def with_groups(values: list[float], **groups: list[str]) -> dict:
+    """The distribution of `values`, and per_<name> its distribution within each label of every grouping given
+    (per_family: the sampler's random | regular; per_actuators: all up | all down | ... | mixed)."""
     out = distribution(values)
-    out["per_family"] = {fam: distribution([v for v, f in zip(values, families) if f == fam])
-                         for fam in sorted(set(families))}
+    for name, labels in groups.items():
+        out[f"per_{name}"] = {lab: distribution([v for v, g in zip(values, labels) if g == lab])
+                              for lab in sorted(set(labels))}
     return out
 
 
@@ -49,11 +52,12 @@ def rank_correlation(x, y) -> float:
 def design_statistics(designs: list[dict]) -> dict:
     """The error distributions of a report over its per-design entries (overall and per family for the errors);
     for an ensemble also its members' spread and how well the spread ranks the designs by error."""
-    fams = [d["family"] for d in designs]
+    groups = {"family": [d["family"] for d in designs],
+              "actuators": [d.get("actuators", "unknown") for d in designs]}  # reports before session 15: unknown
     out = {
         "n_designs": len(designs),
-        "max_rel_error": with_families([d["max_rel_error"] for d in designs], fams),
-        "mean_rel_error": with_families([d["mean_rel_error"] for d in designs], fams),
+        "max_rel_error": with_groups([d["max_rel_error"] for d in designs], **groups),
+        "mean_rel_error": with_groups([d["mean_rel_error"] for d in designs], **groups),
         "representation_floor": distribution([d["representation_floor"] for d in designs]),
         "input_floor": distribution([d["input_floor"] for d in designs]),
     }
@@ -139,7 +143,7 @@ def evaluate(cfg: DictConfig) -> dict:
         seen = input_floor(model, f)
         verdict = check(model, r, **OmegaConf.to_container(cfg.validity), envelope=ckpt.get("envelope"))
         designs.append({
-            "name": f.name, "family": f.family, "design_size_mm": f.design_size,
+            "name": f.name, "family": f.family, "actuators": f.actuators, "design_size_mm": f.design_size,
             "max_rel_error": float(err.max() / f.design_size), "mean_rel_error": float(err.mean() / f.design_size),
             "max_error_mm": float(err.max()),
             "max_rel_error_per_frame": (err.max(axis=1) / f.design_size).tolist(),
@@ -205,8 +209,8 @@ def markdown(report: dict, with_designs: bool = True) -> str:
         f"# Learned rollout vs FEA ({report['n_designs']} designs, split {report['split']})", "",
         "| | median | p95 | worst | n |", "|---|---|---|---|---|",
         f"| max error / design size | {_pct(m['median'])} | {_pct(m['p95'])} | {_pct(m['worst'])} | {m['n']} |",
-        *(f"| ... {fam} | {_pct(d['median'])} | {_pct(d['p95'])} | {_pct(d['worst'])} | {d['n']} |"
-          for fam, d in m["per_family"].items()),
+        *(f"| ... {group} | {_pct(d['median'])} | {_pct(d['p95'])} | {_pct(d['worst'])} | {d['n']} |"
+          for key in ("per_family", "per_actuators") for group, d in m.get(key, {}).items()),
         f"| mean error / design size | {_pct(report['mean_rel_error']['median'])} | "
         f"{_pct(report['mean_rel_error']['p95'])} | {_pct(report['mean_rel_error']['worst'])} | |",
         *(f"| {label} | {_pct(report[key]['median'])} | {_pct(report[key]['p95'])} | {_pct(report[key]['worst'])} | |"
@@ -225,9 +229,11 @@ def markdown(report: dict, with_designs: bool = True) -> str:
                   f"{_pct(sp['median'])} median, {_pct(sp['p95'])} p95, {_pct(sp['worst'])} worst; Spearman with the "
                   f"max error {report['spread_error_spearman']:.2f}"]
     if with_designs:
-        lines += ["", "| design | family | size mm | max err | mean err | floor | valid |", "|---|---|---|---|---|---|---|"]
+        lines += ["", "| design | family | actuators | size mm | max err | mean err | floor | valid |",
+                  "|---|---|---|---|---|---|---|---|"]
         for d in sorted(report["designs"], key=lambda d: d["max_rel_error"]):
-            lines.append(f"| {d['name']} | {d['family']} | {d['design_size_mm']:.1f} | {_pct(d['max_rel_error'])} | "
+            lines.append(f"| {d['name']} | {d['family']} | {d.get('actuators', '-')} | {d['design_size_mm']:.1f} | "
+                         f"{_pct(d['max_rel_error'])} | "
                          f"{_pct(d['mean_rel_error'])} | {_pct(d['representation_floor'])} | "
                          f"{'yes' if d['valid'] else 'NO: ' + '; '.join(d['validity']['reasons'])} |")
     return "\n".join(lines) + "\n"

@@ -95,6 +95,14 @@ class EpisodeFeatures:
     def n_frames(self) -> int:
         return len(self.t)
 
+    @property
+    def actuators(self) -> str:
+        """The design's actuator group (the sampler's, as in the thesis: all up, all down, random): 'all up',
+        'all down' or 'all passive' when every beam is of that kind (from the beams' kind flags), else 'mixed'."""
+        flags = np.stack([self.beam_bc[:, BEAM.bc.slice(f"kind_{k}")].ravel() for k in BEAM_KINDS], axis=1)
+        kinds = {BEAM_KINDS[c] for c in flags.argmax(axis=1)}
+        return f"all {kinds.pop()}" if len(kinds) == 1 else "mixed"
+
     def rotated(self, R: np.ndarray) -> "EpisodeFeatures":
         from learn.symmetry import rotate_term, rotate_vectors
 

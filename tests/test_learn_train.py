@@ -166,9 +166,30 @@ def test_evaluate_writes_the_report(trained, tmp_path):
         assert key in on_disk["max_rel_error"]
     assert on_disk["n_designs"] == report["n_designs"] >= 1
     assert "synthetic" in on_disk["max_rel_error"]["per_family"]
+    groups = on_disk["max_rel_error"]["per_actuators"]
+    assert sum(g["n"] for g in groups.values()) == on_disk["n_designs"]
+    assert set(groups) == {d["actuators"] for d in on_disk["designs"]} <= {"all up", "all down", "all passive", "mixed"}
     assert len(on_disk["designs"][0]["max_rel_error_per_frame"]) == 11
     assert (tmp_path / "report.md").exists() and (tmp_path / "error_vs_step.png").stat().st_size > 0
     assert (tmp_path / "overlay_best_median_worst.png").exists()
+
+
+def test_the_actuator_group_is_read_from_the_beams_kind_flags():
+    """EpisodeFeatures.actuators: 'all <kind>' when every beam has that kind (the sampler's all-up / all-down
+    groups), else 'mixed'; relabelled copies keep it."""
+    import dataclasses
+    from learn.graph import BEAM_KINDS
+    ep = synthetic_episode(3, 3, 5, 3, 3, frames=3, seed=0)
+    ep.beam_kind[:] = 0
+    assert extract(ep).actuators == "all up" == extract(ep).mirrored().actuators
+    ep.beam_kind[:] = 1
+    assert extract(ep).actuators == "all down"
+    ep.beam_kind[0] = 2
+    f = extract(ep)
+    assert f.actuators == "mixed" and BEAM_KINDS[2] == "passive"
+    bc = f.beam_bc.copy()
+    bc[:, BEAM.bc.slice("kind_passive")], bc[:, BEAM.bc.slice("kind_down")] = 1.0, 0.0
+    assert dataclasses.replace(f, beam_bc=bc).actuators == "all passive"
 
 
 def test_evaluate_all_episodes_joined_splits_and_refuse_an_unknown_split(trained, data_dir, tmp_path):
