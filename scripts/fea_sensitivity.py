@@ -37,6 +37,14 @@ def jittered(design: Design, r_max: float, seed: int) -> Design:
     return out
 
 
+def failed(row: dict) -> str:
+    """A failed perturbed solve as a table cell: its status, and where it stopped when it diverged."""
+    if "last_t" not in row:
+        return row["status"]
+    return (f"{row['status']} at t = {row['last_t']:.3f}, clearance {row.get('last_clearance_mm', float('nan')):.2f} mm"
+            f" (blocks {row.get('last_clearance_blocks', '?')})")
+
+
 def final_shape_change(a, b) -> dict:
     """Two episodes of one topology (equal node keys) -> the largest node distance at frame 0 (the input change)
     and at the last frame (the output change), in mm and as a fraction of a's design size; and a's own motion."""
@@ -75,9 +83,10 @@ def main() -> None:
         if not episode_path(solved, i).exists():  # resumable: a solved perturbation is kept
             record = run_episode(i, jittered(Design.load(design_file), a.jitter_mm, i), solved,
                                  OmegaConf.create({"np": a.np, "seed": 0}), [])
-            if record["status"] != "ok":
-                print(f"episode {i}: perturbed solve {record['status']}: {record.get('reason', '')}", flush=True)
-                rows.append({"episode": i, "status": record["status"]})
+            if record["status"] != "ok":  # where it stopped and how close the grid came to itself (fea_factory)
+                where = {k: record[k] for k in ("last_t", "last_clearance_mm", "last_clearance_blocks") if k in record}
+                print(f"episode {i}: perturbed solve {record['status']}: {record.get('reason', '')} {where}", flush=True)
+                rows.append({"episode": i, "status": record["status"], **where})
                 continue
         row = {"episode": i, "status": "ok",
                **final_shape_change(read_episode(source), read_episode(episode_path(solved, i)))}
@@ -86,7 +95,7 @@ def main() -> None:
               f" = {100 * row['output_change_rel']:.3f} % of {row['design_size_mm']:.0f} mm "
               f"(x{row['amplification']:.1f}; FEA motion {100 * row['fea_motion_rel']:.0f} %)", flush=True)
     fields = ["episode", "status", "design_size_mm", "input_change_mm", "output_change_mm", "output_change_rel",
-              "amplification", "fea_motion_rel"]
+              "amplification", "fea_motion_rel", "last_t", "last_clearance_mm"]
     atomic.write_csv(out / "sensitivity.csv", [{k: r.get(k, "") for k in fields} for r in rows], fields)
     lines = [f"# FEA final-shape sensitivity to a {a.jitter_mm} mm joint jitter ({data})", "",
              f"Machine: {machine()}. Command: `{' '.join([Path(sys.executable).name, *sys.argv])}`", "",
@@ -94,7 +103,7 @@ def main() -> None:
              "|---|---|---|---|---|---|"]
     lines += [f"| {r['episode']} | {r['input_change_mm']:.3f} | {r['output_change_mm']:.3f} | "
               f"{100 * r['output_change_rel']:.3f} % | x{r['amplification']:.1f} | {100 * r['fea_motion_rel']:.0f} % |"
-              if r["status"] == "ok" else f"| {r['episode']} | {r['status']} | | | | |" for r in rows]
+              if r["status"] == "ok" else f"| {r['episode']} | {failed(r)} | | | | |" for r in rows]
     atomic.write_text(out / "sensitivity.md", "\n".join(lines) + "\n")
     print(f"-> {out / 'sensitivity.md'}")
 

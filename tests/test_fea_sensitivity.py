@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "scripts"))
-from fea_sensitivity import final_shape_change, jittered  # noqa: E402
+from fea_sensitivity import failed, final_shape_change, jittered  # noqa: E402
 
 from fea_factory.design import lattice_design, validate  # noqa: E402
 from fea_factory.sample import lattice  # noqa: E402
@@ -38,3 +38,9 @@ def test_final_shape_change_is_the_largest_node_distance():
     assert c["fea_motion_rel"] == pytest.approx(0.2)
     with pytest.raises(ValueError, match="node keys"):
         final_shape_change(a, _episode(np.zeros((2, 3)), np.zeros((2, 3)), [[0, 0, 0, 0], [0, 2, 0, 0]]))
+
+
+def test_a_diverged_perturbation_says_where_it_stopped_and_how_close_the_grid_came_to_itself():
+    assert failed({"status": "error"}) == "error"
+    cell = failed({"status": "diverged", "last_t": 0.8361, "last_clearance_mm": 12.93, "last_clearance_blocks": [1, 4]})
+    assert cell == "diverged at t = 0.836, clearance 12.93 mm (blocks [1, 4])"
