@@ -36,11 +36,11 @@ def augmented(features: list, cfg, rotations: int | None = None) -> list:
 
 
 def training_sets(designs: list, cfg) -> tuple[GraphSet | TurnedSet, GraphSet]:
-    """-> (what train_epoch draws batches from, what the PCA and normalisers are fitted on). rotations_stored (the
-    default): one GraphSet of every augmented copy, both. rotations_stored=false: the labelled copies once, turned per
-    batch by the angles augment would draw (TurnedSet: the same batches, 1/rotations of the memory); the turned set
-    is built only for the fit. rotations_redraw: the labelled copies once, turned per batch by new angles."""
-    stored = cfg.get("rotations_stored", True)
+    """-> (what train_epoch draws batches from, what the PCA and normalisers are fitted on). rotations_stored=true:
+    one GraphSet of every augmented copy, both. rotations_stored=false (the default): the labelled copies once, turned
+    per batch by the angles augment would draw (TurnedSet: the same batches, 1/rotations of the memory); the turned
+    set is built only for the fit. rotations_redraw: the labelled copies once, turned per batch by new angles."""
+    stored = cfg.get("rotations_stored", False)
     if not isinstance(stored, bool):
         raise ValueError(f"rotations_stored={stored!r}: must be true or false")
     redraw = cfg.get("rotations_redraw", False)
