@@ -110,6 +110,16 @@ def weight_average(model: Simulator, decay: float) -> AveragedModel | None:
     return AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(float(decay)), use_buffers=False)
 
 
+PRECISIONS = ("fp32", "bf16")
+
+
+def precision_checked(name) -> str:
+    if name not in PRECISIONS:
+        raise ValueError(f"precision={name!r}: must be one of {' | '.join(PRECISIONS)} (bf16: the training loss's "
+                         "forward pass in bfloat16 autocast; validation and every answer stay float32)")
+    return name
+
+
 def loss_terms(cfg: DictConfig) -> dict:
     """What the loss weighs besides the state columns (learn.metrics.multistep_loss keywords), for training and
     validation alike."""
@@ -125,9 +135,13 @@ def train_epoch(model: Simulator, opt: torch.optim.Optimizer, train_set: GraphSe
     gen = torch.Generator().manual_seed(int(cfg.seed) * 100003 + epoch)
     losses = []
     redrawn = cfg.rotations if cfg.get("rotations_redraw", False) else 1  # else augment turned the set once
+    # bf16: matrix products of the forward pass in bfloat16 (CPU autocast); the states, the loss and the weights
+    # stay float32, so the update dG is rounded to bfloat16 but never accumulated in it
+    bf16 = precision_checked(cfg.get("precision", "fp32")) == "bf16"
     for batch in train_set.batches(cfg.batch_size, gen, redrawn):
-        loss = multistep_loss(model, batch, cfg.rollout_horizon, cfg.noise_std, cfg.stress_weight, gen,
-                              through=cfg.get("rollout_gradient", "through") == "through", **loss_terms(cfg))
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            loss = multistep_loss(model, batch, cfg.rollout_horizon, cfg.noise_std, cfg.stress_weight, gen,
+                                  through=cfg.get("rollout_gradient", "through") == "through", **loss_terms(cfg))
         opt.zero_grad()
         loss.backward()
         if cfg.optim.grad_clip:
@@ -186,6 +200,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
     term_retention(retention_of(cfg))  # a bad value stops here, before any data is read
     ema_decay_checked(cfg.optim.get("ema_decay", 0.0))
     schedule_checked(cfg.optim.get("schedule", "step"))
+    precision_checked(cfg.get("precision", "fp32"))
     if cfg.get("rollout_gradient", "through") not in ("through", "stop"):
         raise ValueError(f"rollout_gradient={cfg.rollout_gradient!r}: must be through | stop")
     n_probe = integer_in(cfg.get("train_probe", 0), "train_probe", 0, 10**6,
