@@ -56,3 +56,29 @@ def test_cli_writes_table_json_and_plot(tmp_path):
     result = json.loads((tmp_path / "cmp" / "compare.json").read_text())
     assert result["rows"][1]["label"] == "new" and result["rows"][1]["better_on"] == 2
     assert (tmp_path / "cmp" / "compare.png").stat().st_size > 0 and (tmp_path / "cmp" / "compare.md").exists()
+
+
+def history(val, train=None, seconds_per_epoch=100.0):
+    return [{"epoch": e, "val_rollout": v, "seconds": seconds_per_epoch * (e + 1),
+             **({} if train is None else {"train_rollout": train[e]})} for e, v in enumerate(val)]
+
+
+def test_curves_rows_hold_each_runs_best_when_it_came_and_the_settings_that_differ():
+    from learn.curves import curves, markdown
+    fast = ("fast", history([0.2, 0.1, 0.12], [0.1, 0.05, 0.04], seconds_per_epoch=36.0),
+            {"batch_size": 64, "precision": "bf16", "seed": 0, "optim": {"lr": 2e-3}})
+    slow = ("slow", history([0.3, 0.2, 0.15, 0.09]), {"batch_size": 16, "precision": "fp32", "seed": 0,
+                                                       "optim": {"lr": 1e-3}})
+    out = curves([fast, slow])
+    assert out["differs"] == ["batch_size", "precision", "optim.lr"]
+    f, s = out["rows"]
+    assert (f["best_val_rollout"], f["best_epoch"], f["train_rollout_at_best"]) == (0.1, 1, 0.05)
+    assert f["best_hours"] == pytest.approx(72 / 3600) and f["seconds_per_epoch"] == pytest.approx(36.0)
+    assert (s["best_epoch"], s["epochs_run"]) == (3, 4) and np.isnan(s["train_rollout_at_best"])
+    assert "| fast | 64 | bf16 | 0.002 | 3 | 10.00 % | 1 | 0.02 | 5.00 % | 12.00 % | 36 |" in markdown(out)
+
+
+def test_curves_refuses_a_directory_without_a_checkpoint(tmp_path):
+    from learn.curves import run_history
+    with pytest.raises(FileNotFoundError, match="holds no last.pt or best.pt"):
+        run_history(tmp_path)

@@ -516,3 +516,14 @@ def test_bf16_training_rounds_the_network_not_the_states_and_a_bad_precision_is_
     with pytest.raises(ValueError, match=re.escape("precision='fp16': must be one of fp32 | bf16")):
         train(cfg_for("train", tiny(data_dir, tmp_path / "bad", "epochs=1", "precision=fp16")))
     assert not (tmp_path / "bad" / "last.pt").exists()
+
+
+def test_curves_of_runs_write_a_table_and_a_plot(trained, tmp_path):
+    """learn.curves (make curves) on a real run's history: the table names the run and its best epoch."""
+    run = trained[0]
+    subprocess.run([sys.executable, "-m", "learn.curves", f"runs=[{run},{run}]", "labels=[a,b]",
+                    f"out_dir={tmp_path}"], cwd=REPO, check=True, capture_output=True)
+    table = (tmp_path / "curves.md").read_text()
+    best = min(checkpoint.load(run / "last.pt")["history"], key=lambda r: r["val_rollout"])
+    assert f"| a | 16 | {100 * best['val_rollout']:.2f} % | {best['epoch']} |" in table
+    assert (tmp_path / "curves.png").stat().st_size > 0 and json.loads((tmp_path / "curves.json").read_text())
