@@ -2,7 +2,7 @@
 out_dir=reports/curves` (conf/curves.yaml; `make curves RUNS=runs/a,runs/b`).
 
 Reads each run's history from its last.pt (best.pt when a run has no last.pt) and writes curves.md (one row per run:
-the settings that differ between the runs, best validation rollout error and when it came, in epochs and hours, the
+the settings that differ between the runs, "-" where a run predates one, best validation rollout error and when it came, in epochs and hours, the
 training designs' error at that epoch, seconds per epoch), curves.json and curves.png (the validation rollout error,
 and the training designs' error where the run logged it, against epochs and against hours of training: a faster
 recipe is judged by what it reaches in the same time).
@@ -82,7 +82,8 @@ def markdown(result: dict) -> str:
         if not r["epochs_run"]:
             lines.append(f"| {r['label']} |" + " |" * (len(head) - 1))
             continue
-        cells = [r["label"], *(str(r["settings"][k]) for k in result["differs"]), str(r["epochs_run"]),
+        shown = ("-" if r["settings"][k] is None else str(r["settings"][k]) for k in result["differs"])
+        cells = [r["label"], *shown, str(r["epochs_run"]),
                  pct(r["best_val_rollout"]), str(r["best_epoch"]), f"{r['best_hours']:.2f}",
                  pct(r["train_rollout_at_best"]), pct(r["last_val_rollout"]), f"{r['seconds_per_epoch']:.0f}"]
         lines.append("| " + " | ".join(cells) + " |")
