@@ -104,18 +104,23 @@ def plot(result: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def write_outputs(out_dir: str | Path, stem: str, result: dict, to_markdown, to_plot=None) -> None:
+    """stem.json, stem.md and (when to_plot is given) stem.png in out_dir, each written atomically; the table logged."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    atomic.write_text(out_dir / f"{stem}.json", json.dumps(finite_or_null(result), indent=1, allow_nan=False))
+    atomic.write_text(out_dir / f"{stem}.md", to_markdown(result))
+    if to_plot is not None:
+        to_plot(result, out_dir / f"{stem}.png")
+    log.info("\n%s", to_markdown(result))
+
+
 @hydra.main(version_base="1.3", config_path="../conf", config_name="compare")
 def main(cfg: DictConfig) -> None:
     paths = [str(p) for p in cfg.reports]
     labels = [str(v) for v in cfg.labels] if cfg.labels else paths
     result = compare([read_report(p) for p in paths], labels)
-    out_dir = Path(cfg.out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    atomic.write_text(out_dir / "compare.json", json.dumps(finite_or_null(result), indent=1, allow_nan=False))
-    atomic.write_text(out_dir / "compare.md", markdown(result))
-    if cfg.plots:
-        plot(result, out_dir / "compare.png")
-    log.info("\n%s", markdown(result))
+    write_outputs(cfg.out_dir, "compare", result, markdown, plot if cfg.plots else None)
 
 
 if __name__ == "__main__":

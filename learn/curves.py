@@ -9,8 +9,6 @@ recipe is judged by what it reaches in the same time).
 """
 from __future__ import annotations
 
-import json
-import logging
 import math
 from pathlib import Path
 
@@ -18,11 +16,9 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig
 
-from data_schema import atomic
 from learn import checkpoint
-from learn.evaluate import finite_or_null
+from learn.compare import write_outputs
 
-log = logging.getLogger(__name__)
 SETTINGS = ("epochs", "batch_size", "precision", "optim.lr", "optim.schedule", "optim.lr_drop_at", "lattice_turns",
             "rotations", "mirror", "seed", "model.latent", "model.widths", "model.n_blocks", "model.layer_norm")
 
@@ -122,13 +118,7 @@ def main(cfg: DictConfig) -> None:
     if len(labels) != len(paths):
         raise ValueError(f"labels: {len(labels)} given for {len(paths)} runs")
     result = curves([(label, *run_history(p)) for label, p in zip(labels, paths)])
-    out_dir = Path(cfg.out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    atomic.write_text(out_dir / "curves.json", json.dumps(finite_or_null(result), indent=1, allow_nan=False))
-    atomic.write_text(out_dir / "curves.md", markdown(result))
-    if cfg.plots:
-        plot(result, out_dir / "curves.png")
-    log.info("\n%s", markdown(result))
+    write_outputs(cfg.out_dir, "curves", result, markdown, plot if cfg.plots else None)
 
 
 if __name__ == "__main__":
