@@ -492,8 +492,8 @@ def test_the_reference_experiment_composes_the_full_scale_recipe_over_the_defaul
     everything else the defaults (the model, augmentation)."""
     cfg = cfg_for("train", ["+experiment=reference"])
     default = cfg_for("train", [])
-    assert (cfg.data_dir, cfg.split_from, cfg.epochs, cfg.optim.lr_drop_at) == (
-        "data/ds_default", "conf/held_out/ds_default.yaml", 32, 0.65)
+    assert (cfg.data_dir, cfg.split_from, cfg.epochs, cfg.optim.lr_drop_at, cfg.train_designs) == (
+        "data/ds_default", "conf/held_out/ds_default.yaml", 32, 0.65, 348)
     assert (REPO / cfg.split_from).exists()
     assert cfg.model == default.model and cfg.lattice_turns == default.lattice_turns and cfg.mirror == default.mirror
     assert cfg.optim.lr == default.optim.lr and cfg.batch_size == default.batch_size
