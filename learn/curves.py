@@ -2,10 +2,10 @@
 out_dir=reports/curves` (conf/curves.yaml; `make curves RUNS=runs/a,runs/b`).
 
 Reads each run's history from its last.pt (best.pt when a run has no last.pt) and writes curves.md (one row per run:
-the settings that differ between the runs, "-" where a run predates one, best validation rollout error and when it came, in epochs and hours, the
-training designs' error at that epoch, seconds per epoch), curves.json and curves.png (the validation rollout error,
-and the training designs' error where the run logged it, against epochs and against hours of training: a faster
-recipe is judged by what it reaches in the same time).
+the settings that differ between the runs, "-" where a run predates one; the best validation rollout error and when
+it came, in epochs and hours; the training designs' error at that epoch; seconds per epoch), curves.json and
+curves.png (the validation rollout error, and the training designs' error where the run logged it, against epochs
+and against hours of training: a faster recipe is judged by what it reaches in the same time).
 """
 from __future__ import annotations
 
