@@ -153,25 +153,26 @@ def train_epoch(model: Simulator, opt: torch.optim.Optimizer, train_set: GraphSe
     return losses
 
 
+def worst_rollout_errors(model: Simulator, data: GraphSet) -> np.ndarray:
+    """[items] each design's max error / design size over the frames of its rollout, the model in eval mode."""
+    model.eval()
+    max_err, _ = rollout_errors(model, data)
+    model.train()
+    return max_err.max(axis=1)
+
+
 def evaluate_split(model: Simulator, data: GraphSet, cfg: DictConfig) -> dict:
     model.eval()
     with torch.no_grad():
         loss = float(multistep_loss(model, data, cfg.rollout_horizon, 0.0, cfg.stress_weight, **loss_terms(cfg)))
-    max_err, _ = rollout_errors(model, data)
-    model.train()
-    worst = max_err.max(axis=1)  # [items] max over frames
+    worst = worst_rollout_errors(model, data)
     return {"val_loss": loss, "val_rollout": float(worst.mean()), "val_rollout_worst": float(worst.max())}
 
 
 def fit_rollout(model: Simulator, probe: GraphSet | None) -> dict:
     """The validation rollout measure on training designs (`train_probe` of them, as labelled): beside val_rollout
     it says whether a run is limited by how well it fits (both high) or by how it generalises (a gap)."""
-    if probe is None:
-        return {}
-    model.eval()
-    max_err, _ = rollout_errors(model, probe)
-    model.train()
-    return {"train_rollout": float(max_err.max(axis=1).mean())}
+    return {} if probe is None else {"train_rollout": float(worst_rollout_errors(model, probe).mean())}
 
 
 def append_result(path: str | Path, row: dict) -> None:
