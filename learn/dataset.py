@@ -1,7 +1,7 @@
 """Episodes on disk -> features, a split by episode, rotation augmentation, and graph sets for batched training."""
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,6 +16,7 @@ from learn.model import Static
 from learn.symmetry import rotation_angles, rotation_z
 
 SPLITS = ("train", "val", "test")
+FIT_BLOCK = 1024  # training copies per block of the PCA and normaliser fits (Simulator.fit_blocks): ~0.3 GB
 
 
 def episode_paths(data_dir: str | Path) -> list[Path]:
@@ -184,10 +185,20 @@ class GraphSet:
                         static=Static(out["joint_bc"], out["beam_bc"], self.static.index),
                         joint_offsets=self.joint_offsets, beam_offsets=self.beam_offsets)
 
-    def turned_copies(self, angles: np.ndarray) -> "GraphSet":
-        """[n, R] angles -> one set of every item turned by each of its R angles, item-major (the order augment
-        gives): what a TurnedSet trains on, held in memory at once (to fit the PCA and normalisers on)."""
-        return GraphSet.build([f for f in self.items for _ in range(angles.shape[1])]).rotated(angles.ravel())
+    def turned_copies(self, angles: np.ndarray, items: slice = slice(None)) -> "GraphSet":
+        """[n, R] angles -> one set of every item (or of the items[items]) turned by each of its R angles,
+        item-major (the order augment gives): what a TurnedSet trains on, held in memory at once."""
+        chosen, angles = self.items[items], angles[items]
+        return GraphSet.build([f for f in chosen for _ in range(angles.shape[1])]).rotated(angles.ravel())
+
+    def fit_blocks(self, size: int = FIT_BLOCK) -> Callable[[], Iterator[tuple]]:
+        """What Simulator.fit_blocks fits on: a callable yielding (joint_state, beam_state, static) of `size` items
+        at a time, so the fit's terms are never built for the whole set at once."""
+        def blocks():
+            for start in range(0, len(self), size):
+                part = GraphSet.build(self.items[start:start + size])
+                yield part.joint_state, part.beam_state, part.static
+        return blocks
 
 
 def turned_batches(items: list[EpisodeFeatures], order: list[int], batch_size: int,
@@ -222,3 +233,14 @@ class TurnedSet:
             return [self.base.turned_copies(self.angles)]
         order = torch.randperm(total, generator=generator).tolist()
         return turned_batches(self.base.items, order, batch_size, lambda k: (k // R, self.angles[k // R, k % R]))
+
+    def fit_blocks(self, size: int = FIT_BLOCK) -> Callable[[], Iterator[tuple]]:
+        """As GraphSet.fit_blocks over every turned copy, item-major: the copies of `size` // R items at a time are
+        built and turned as the fit reaches them (the stored set's terms, block by block, to float32 round-off)."""
+        per = max(size // self.angles.shape[1], 1)
+
+        def blocks():
+            for start in range(0, len(self.base), per):
+                part = self.base.turned_copies(self.angles, slice(start, start + per))
+                yield part.joint_state, part.beam_state, part.static
+        return blocks

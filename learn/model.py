@@ -1,7 +1,7 @@
 """The learned simulator: per-term PCA encoding, a single or double GN core, and G(t+1) = G(t) + dG."""
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -11,7 +11,7 @@ from torch import nn
 from learn import frames, kinematics
 from learn.gn import GNBlock, ProcessorBlock, activation_checked, mlp
 from learn.graph import BEAM, JOINT, Block, GraphIndex
-from learn.pca import Normalizer, TermPCA
+from learn.pca import Moments, Normalizer, TermPCA
 from learn.symmetry import LATTICE_QUARTER_TURNS
 
 TERMS = ("joint_geometry", "joint_stress", "joint_bc", "beam_geometry", "beam_stress", "beam_bc")
@@ -358,28 +358,52 @@ class Simulator(nn.Module):
     def fit(cls, args: dict, joint_state: torch.Tensor, beam_state: torch.Tensor, static: Static,
             retention: float | dict = 1.0, delta_floor: float = 0.01) -> "Simulator":
         """A simulator whose PCA and normalisers are fitted on training states [F, J, Dj], [F, B, Db]."""
+        return cls.fit_blocks(args, lambda: [(joint_state, beam_state, static)], retention, delta_floor)
+
+    @classmethod
+    def fit_blocks(cls, args: dict, blocks: Callable[[], Iterable[tuple[torch.Tensor, torch.Tensor, Static]]],
+                   retention: float | dict = 1.0, delta_floor: float = 0.01) -> "Simulator":
+        """As fit, on training states given a block of designs at a time: blocks() yields (joint_state, beam_state,
+        static) and is called twice (the moments of every term, then the PCA coefficients' range), so the fit never
+        holds more than one block's terms (learn.dataset.TurnedSet.fit_blocks turns each block as it is reached)."""
         probe = cls({**args, "pca": {t: [1, 1] for t in TERMS}})
-        R = probe.frames(joint_state, beam_state, static)
-        raw = probe.raw_terms(joint_state, beam_state, static, R)
+        moments: dict[str, Moments] = {}
+
+        def add(name: str, x: torch.Tensor) -> None:
+            moments.setdefault(name, Moments(x.shape[-1])).add(x.reshape(-1, x.shape[-1]).numpy())
+
+        with torch.no_grad():
+            for joint_state, beam_state, static in blocks():
+                R = probe.frames(joint_state, beam_state, static)
+                for t, x in probe.raw_terms(joint_state, beam_state, static, R).items():
+                    add(t, x)
+                add("edge_norm", probe.edge_features(joint_state, beam_state, static, R))
+                dj, db = joint_state.diff(dim=0), beam_state.diff(dim=0)
+                if probe.rotated:  # updates as the network predicts them: in the frame of the step's start state
+                    dj = frames.rotate_state(dj, JOINT, R[0][:-1], to_local=True)
+                    db = frames.rotate_state(db, BEAM, R[1][:-1], to_local=True)
+                add("joint_delta", dj)
+                add("beam_delta", db)
+                if probe.kinematic:
+                    rj, rb = kinematics.relative(joint_state, beam_state, static.kinematic_tree())
+                    add("joint_rel_delta", rj.diff(dim=0))
+                    add("beam_rel_delta", rb.diff(dim=0))
         keep = term_retention(retention)
-        pcas = {t: TermPCA.fit(x.reshape(-1, x.shape[-1]).numpy(), keep[t.split("_", 1)[1]]) for t, x in raw.items()}
+        pcas = {t: TermPCA.from_moments(moments[t], keep[t.split("_", 1)[1]]) for t in TERMS}
         model = cls({**args, "pca": {t: [p.dim, p.k] for t, p in pcas.items()}})
+        with torch.no_grad():
+            for joint_state, beam_state, static in blocks():  # the coefficients' training range
+                for t, x in probe.raw_terms(joint_state, beam_state, static).items():
+                    pcas[t].widen_range(x.reshape(-1, x.shape[-1]).numpy())
         for t, p in pcas.items():
             model.pca[t].load_state_dict(p.state_dict())
-        edges = probe.edge_features(joint_state, beam_state, static, R)
-        dj, db = joint_state.diff(dim=0), beam_state.diff(dim=0)
-        if probe.rotated:  # updates as the network predicts them: in the frame of the step's start state
-            dj = frames.rotate_state(dj, JOINT, R[0][:-1], to_local=True)
-            db = frames.rotate_state(db, BEAM, R[1][:-1], to_local=True)
-        for name, x, block in (("edge_norm", edges, None), ("joint_delta", dj, JOINT), ("beam_delta", db, BEAM)):
+        for name, block in (("edge_norm", None), ("joint_delta", JOINT), ("beam_delta", BEAM)):
             groups = None if block is None else [block.geometry_slice, block.stress_slice]
-            norm = Normalizer.fit(x.reshape(-1, x.shape[-1]).numpy(), delta_floor if block else 0.0, groups)
-            getattr(model, name).load_state_dict(norm.state_dict())
+            getattr(model, name).load_state_dict(
+                Normalizer.from_moments(moments[name], delta_floor if block else 0.0, groups).state_dict())
         if model.kinematic:
-            rj, rb = kinematics.relative(joint_state, beam_state, static.kinematic_tree())
-            for name, x in (("joint_rel_delta", rj.diff(dim=0)), ("beam_rel_delta", rb.diff(dim=0))):
-                norm = Normalizer.fit(x.reshape(-1, x.shape[-1]).numpy(), delta_floor)
-                getattr(model, name).load_state_dict(norm.state_dict())
+            for name in ("joint_rel_delta", "beam_rel_delta"):
+                getattr(model, name).load_state_dict(Normalizer.from_moments(moments[name], delta_floor).state_dict())
         return model
 
     @property

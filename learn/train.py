@@ -5,6 +5,7 @@ import csv
 import logging
 import math
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import hydra
@@ -35,21 +36,22 @@ def augmented(features: list, cfg, rotations: int | None = None) -> list:
                    cfg.get("lattice_turns", 1))
 
 
-def training_sets(designs: list, cfg) -> tuple[GraphSet | TurnedSet, GraphSet]:
-    """-> (what train_epoch draws batches from, what the PCA and normalisers are fitted on). rotations_stored=true:
-    one GraphSet of every augmented copy, both. rotations_stored=false (the default): the labelled copies once, turned
-    per batch by the angles augment would draw (TurnedSet: the same batches, 1/rotations of the memory); the turned
-    set is built only for the fit. rotations_redraw: the labelled copies once, turned per batch by new angles."""
+def training_sets(designs: list, cfg) -> tuple[GraphSet | TurnedSet, Callable]:
+    """-> (what train_epoch draws batches from, the blocks the PCA and normalisers are fitted on: Simulator.fit_blocks).
+    rotations_stored=true: one GraphSet of every augmented copy, both. rotations_stored=false (the default): the
+    labelled copies once, turned per batch by the angles augment would draw (TurnedSet: the same batches, 1/rotations
+    of the memory); the fit turns them a block at a time. rotations_redraw: the labelled copies once, turned per
+    batch by new angles (the fit: the angles augment draws)."""
     stored = cfg.get("rotations_stored", False)
     if not isinstance(stored, bool):
         raise ValueError(f"rotations_stored={stored!r}: must be true or false")
     redraw = cfg.get("rotations_redraw", False)
     if stored or cfg.rotations <= 1:
         fit_set = GraphSet.build(augmented(designs, cfg))
-        return (GraphSet.build(augmented(designs, cfg, rotations=1)) if redraw else fit_set), fit_set
+        return (GraphSet.build(augmented(designs, cfg, rotations=1)) if redraw else fit_set), fit_set.fit_blocks()
     base = GraphSet.build(augmented(designs, cfg, rotations=1))
-    angles = augment_angles(len(base), cfg.rotations, cfg.seed)
-    return (base if redraw else TurnedSet(base, angles)), base.turned_copies(angles)
+    turned = TurnedSet(base, augment_angles(len(base), cfg.rotations, cfg.seed))
+    return (base if redraw else turned), turned.fit_blocks()
 
 
 def model_args(cfg_model: DictConfig) -> dict:
@@ -234,7 +236,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
         split = {**split, "train": split["train"][:keep]}
     log.info("episodes: %s", {s: len(v) for s, v in split.items()})
     train_envelope = envelope([by_name[n].conditions for n in split["train"]])  # physics the graphs do not carry
-    train_set, fit_set = training_sets([by_name[n] for n in split["train"]], cfg)
+    train_set, fit_blocks = training_sets([by_name[n] for n in split["train"]], cfg)
     val_set = GraphSet.build([by_name[n] for n in split["val"] or split["train"]])
     probe = GraphSet.build([by_name[n] for n in split["train"][:n_probe]]) if n_probe and split["train"] else None
 
@@ -245,9 +247,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
             log.info("initialised from %s (epoch %d); model args from it, conf model ignored", cfg.init_from,
                      init["epoch"])
     else:
-        model = Simulator.fit(model_args(cfg.model), fit_set.joint_state, fit_set.beam_state, fit_set.static,
-                              retention_of(cfg), cfg.delta_std_floor)
-    del fit_set  # with rotations_stored=false or rotations_redraw, the turned copies existed only for the fit
+        model = Simulator.fit_blocks(model_args(cfg.model), fit_blocks, retention_of(cfg), cfg.delta_std_floor)
     log.info("PCA dims %s; %d parameters", {t: p.k for t, p in model.pca.items()}, model.n_parameters)
     floor = max(float(input_floor(model, f).max() / f.design_size) for f in val_set.items)
     log.info("input floor: the PCA'd geometry inputs rebuild the validation designs' points within %.3g %% of the "

@@ -403,3 +403,21 @@ def test_pca_and_normaliser_fits_in_row_blocks_equal_the_one_pass_formulas():
         n = Normalizer.fit(x, rows=rows)
         np.testing.assert_allclose(n.mean.numpy(), mean, rtol=1e-6, atol=1e-6)
         np.testing.assert_allclose(n.std.numpy(), np.maximum(std, 1e-6), rtol=1e-5)
+
+
+def test_moments_merged_block_by_block_are_the_moments_of_all_rows():
+    """Moments.add (Chan's pairwise merge) over blocks of any size gives the mean and covariance of all the rows at
+    once, to float64 round-off relative to the data, even for a column whose mean is 1e6 times its spread (the
+    naive sum-of-squares formula loses it)."""
+    from learn.pca import Moments
+    rng = np.random.default_rng(1)
+    x = rng.normal(size=(500, 4)) @ rng.normal(size=(4, 4)) + [0.0, 5.0, -2.0, 1e6]
+    for blocks in ([500], [1] * 500, [3, 0, 250, 247], [499, 1]):
+        m, start = Moments(4), 0
+        for b in blocks:
+            m.add(x[start:start + b])
+            start += b
+        assert m.n == 500
+        np.testing.assert_allclose(m.mean, x.mean(axis=0), rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(m.cov, np.cov(x.T, bias=True), rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(m.std, x.std(axis=0), rtol=1e-9)

@@ -223,3 +223,36 @@ def test_a_turned_set_gives_the_stored_sets_batches_at_a_fraction_of_the_memory(
         assert close(g.static.beam_bc, w.static.beam_bc) and torch.equal(g.index.senders, w.index.senders)
     with pytest.raises(ValueError, match="rotations_redraw"):
         turned.batches(5, torch.Generator(), rotations=4)
+
+
+def test_the_fit_over_turned_blocks_is_the_fit_over_the_stored_set():
+    """rotations_stored=false fits the PCA and normalisers a block of turned copies at a time
+    (TurnedSet.fit_blocks -> Simulator.fit_blocks), never holding every copy's terms: the normalisers, the PCA's
+    means, scales and spectrum (and the covariance it keeps) equal the fit on the whole stored set to float32
+    round-off of the turned states, and each fit's coefficient range is exactly its data's."""
+    fs = [extract(synthetic_episode(3, 3, 5, 3, 3, 5, seed=s), name=f"ep{s}.h5") for s in (1, 2, 3)]
+    base = GraphSet.build(labelled(fs, mirror=True, lattice_turns=2))
+    turned = TurnedSet(base, augment_angles(len(base), 4, 7))
+    stored = base.turned_copies(turned.angles)
+    args = {"core": "double_gn", "latent": 8, "widths": [16, 8], "pin_fixed_joint": True}
+    whole = Simulator.fit(args, stored.joint_state, stored.beam_state, stored.static, 1.0)
+    for size in (4, 9, 1000):  # one item's 4 copies per block, 2 items per block, everything at once
+        blocks = turned.fit_blocks(size)
+        assert [j.shape[1] // 9 for j, _, _ in blocks()][:2] == [min(size // 4, len(base)) * 4] * min(2, -(-len(base) * 4 // size))
+        fitted = Simulator.fit_blocks(args, blocks, 1.0)
+        for name in ("edge_norm", "joint_delta", "beam_delta"):
+            for stat in ("mean", "std"):
+                a, b = getattr(getattr(fitted, name), stat), getattr(getattr(whole, name), stat)
+                assert torch.allclose(a, b, rtol=1e-4, atol=1e-5 * float(b.abs().max())), (size, name, stat)
+        for t, p in fitted.pca.items():
+            q = whole.pca[t]
+            assert p.k == q.k, t
+            assert torch.allclose(p.mean, q.mean, rtol=1e-4, atol=1e-5 * float(q.mean.abs().max() + 1e-6)), t
+            assert torch.allclose(p.scale, q.scale, rtol=1e-4), t
+            assert torch.allclose(p.sigma, q.sigma, rtol=1e-3, atol=1e-4), t
+            kept = lambda m: (m.components * m.sigma ** 2) @ m.components.T  # noqa: E731
+            assert torch.allclose(kept(p), kept(q), atol=1e-3 * float(kept(q).abs().max())), t
+            raw = fitted.raw_terms(stored.joint_state, stored.beam_state, stored.static)[t]
+            z = p(raw.reshape(-1, raw.shape[-1]))
+            assert torch.allclose(p.lo, z.min(dim=0).values, atol=1e-4) and torch.allclose(p.hi, z.max(dim=0).values,
+                                                                                            atol=1e-4), t
