@@ -49,11 +49,15 @@ def rank_correlation(x, y) -> float:
     return float(np.corrcoef(rx, ry)[0, 1]) if len(rx) > 1 else float("nan")
 
 
+# how a report's designs are grouped (with_groups: per_<name> in the report, a row per label in markdown)
+GROUPINGS = {"family": lambda d: d["family"],  # the sampler's random | regular
+             "actuators": lambda d: d.get("actuators", "unknown")}  # all up | all down | ...; reports before session 15: unknown
+
+
 def design_statistics(designs: list[dict]) -> dict:
     """The error distributions of a report over its per-design entries (overall and per family for the errors);
     for an ensemble also its members' spread and how well the spread ranks the designs by error."""
-    groups = {"family": [d["family"] for d in designs],
-              "actuators": [d.get("actuators", "unknown") for d in designs]}  # reports before session 15: unknown
+    groups = {name: [label(d) for d in designs] for name, label in GROUPINGS.items()}
     out = {
         "n_designs": len(designs),
         "max_rel_error": with_groups([d["max_rel_error"] for d in designs], **groups),
@@ -210,7 +214,7 @@ def markdown(report: dict, with_designs: bool = True) -> str:
         "| | median | p95 | worst | n |", "|---|---|---|---|---|",
         f"| max error / design size | {_pct(m['median'])} | {_pct(m['p95'])} | {_pct(m['worst'])} | {m['n']} |",
         *(f"| ... {group} | {_pct(d['median'])} | {_pct(d['p95'])} | {_pct(d['worst'])} | {d['n']} |"
-          for key in ("per_family", "per_actuators") for group, d in m.get(key, {}).items()),
+          for name in GROUPINGS for group, d in m.get(f"per_{name}", {}).items()),
         f"| mean error / design size | {_pct(report['mean_rel_error']['median'])} | "
         f"{_pct(report['mean_rel_error']['p95'])} | {_pct(report['mean_rel_error']['worst'])} | |",
         *(f"| {label} | {_pct(report[key]['median'])} | {_pct(report[key]['p95'])} | {_pct(report[key]['worst'])} | |"
