@@ -57,9 +57,13 @@ def combine(reports: list[dict]) -> dict:
         "split": " + ".join(f"{r['data_dir']}:{r['split']}" for r in reports),
         "data_dir": ", ".join(r["data_dir"] for r in reports),
         "n_parameters": reports[0].get("n_parameters"),
+        "timing_busy": any(bool(r.get("timing_busy")) for r in reports),
+        "load_average": max((r["load_average"] for r in reports if r.get("load_average") is not None), default=None),
+        "cpus": reports[0].get("cpus"),
         "timing": "design-weighted means of the sources' timings (learn.evaluate: " + reports[0].get("timing", "") + ")",
         "sources": [{"data_dir": r["data_dir"], "split": r["split"], "n_designs": r["n_designs"],
-                     "rollout_ms_per_design": r["rollout_ms_per_design"]} for r in reports],
+                     "rollout_ms_per_design": r["rollout_ms_per_design"], "timing_busy": r.get("timing_busy")}
+                    for r in reports],
         "designs": designs,
     }
     out["speedup"] = out["fea_s_per_episode"] / out["rollout_ms_per_design"] * 1e3

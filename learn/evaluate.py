@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import time
 from pathlib import Path
 
@@ -91,8 +92,16 @@ def eager_rollout(model: Simulator, f: EpisodeFeatures):
     return lambda: rebuild_all_points(*answer_unroll(model, j0, b0, static, t))
 
 
+def busy(load: float, threads: int, cpus: int | None = None) -> bool:
+    """Whether a timing was taken on a busy machine: the 1-minute load average (runnable threads, this process's
+    `threads` included) more than half a thread above what the CPUs (or those threads) can run at once, so other
+    work took CPU time from the rollouts."""
+    return load > max(cpus or os.cpu_count() or 1, threads) + 0.5
+
+
 def timings(model: Simulator, features: list[EpisodeFeatures], repeats: int) -> dict:
-    """Seconds per design: one design at a time (compiled and eager) and all designs as one batched graph."""
+    """Seconds per design: one design at a time (compiled and eager) and all designs as one batched graph; the
+    machine's 1-minute load average after them (`busy` says whether they are upper bounds)."""
     start = time.perf_counter()
     compiled = compile_rollout(model, features[0])
     compile_s = time.perf_counter() - start
@@ -110,6 +119,7 @@ def timings(model: Simulator, features: list[EpisodeFeatures], repeats: int) -> 
         "eager": float(np.median([median_seconds(eager_rollout(model, f), repeats) for f in features])),
         "batched": median_seconds(batched, repeats) / len(features),
         "compile": compile_s,
+        "load": os.getloadavg()[0],
     }
 
 
@@ -173,6 +183,8 @@ def evaluate(cfg: DictConfig) -> dict:
         "speedup_batched": fea_s / batched_s,
         "n_invalid": int(sum(not d["valid"] for d in designs)),
         "threads": int(cfg.threads),
+        "load_average": times["load"], "cpus": os.cpu_count(),
+        "timing_busy": busy(times["load"], int(cfg.threads)),
         "steps": int(features[0].n_frames - 1),
         "checkpoint": sources[0] if len(sources) == 1 else sources, "split": cfg.split, "data_dir": str(data_dir),
         "model": {k: v for k, v in model.args.items() if k != "pca"}, "n_parameters": model.n_parameters,
@@ -227,6 +239,10 @@ def markdown(report: dict, with_designs: bool = True) -> str:
         f"speed-up {report['speedup']:.3g}x (batched {report['speedup_batched']:.3g}x); "
         f"{report['n_invalid']} rollouts flagged invalid",
     ]
+    if report.get("timing_busy"):
+        lines += ["", f"Timed on a busy machine (1-minute load {report['load_average']:.1f} on {report['cpus']} CPUs): the "
+                  "times are upper bounds and the speed-ups lower bounds; time on an idle machine with "
+                  "scripts/bench_rollout.py (make bench-rollout)."]
     if "spread_rel" in report:
         sp = report["spread_rel"]
         lines += ["", f"ensemble of {report['model'].get('ensemble_members')}: members' spread / design size "

@@ -170,6 +170,7 @@ def test_evaluate_writes_the_report(trained, tmp_path):
     assert sum(g["n"] for g in groups.values()) == on_disk["n_designs"]
     assert set(groups) == {d["actuators"] for d in on_disk["designs"]} <= {"all up", "all down", "all passive", "mixed"}
     assert len(on_disk["designs"][0]["max_rel_error_per_frame"]) == 11
+    assert on_disk["load_average"] >= 0 and on_disk["cpus"] >= 1 and isinstance(on_disk["timing_busy"], bool)
     assert (tmp_path / "report.md").exists() and (tmp_path / "error_vs_step.png").stat().st_size > 0
     assert (tmp_path / "overlay_best_median_worst.png").exists()
 
@@ -220,6 +221,8 @@ def test_combine_pools_reports_of_one_model_over_the_union_of_designs(trained, d
         for stat in ("median", "p95", "worst"):
             assert pooled[key][stat] == pytest.approx(parts["val+test"][key][stat])
     assert pooled["speedup"] == pytest.approx(pooled["fea_s_per_episode"] / pooled["rollout_ms_per_design"] * 1e3)
+    busy_one = combine([{**parts["val"], "timing_busy": True, "load_average": 3.2}, parts["test"]])
+    assert busy_one["timing_busy"] and busy_one["load_average"] >= 3.2  # one busy source makes the pooled timing busy
     with pytest.raises(ValueError, match="more than once"):
         combine([parts["val"], parts["val+test"]])
     with pytest.raises(ValueError, match="differ in 'checkpoint'"):
@@ -527,3 +530,18 @@ def test_curves_of_runs_write_a_table_and_a_plot(trained, tmp_path):
     best = min(checkpoint.load(run / "last.pt")["history"], key=lambda r: r["val_rollout"])
     assert f"| a | 16 | {100 * best['val_rollout']:.2f} % | {best['epoch']} |" in table
     assert (tmp_path / "curves.png").stat().st_size > 0 and json.loads((tmp_path / "curves.json").read_text())
+
+
+def test_a_timing_on_a_busy_machine_is_flagged_in_the_report():
+    """learn.evaluate records the 1-minute load average after its timings: more runnable threads than CPUs (plus
+    half a thread) means other work took time from the rollouts, and report.md says the times are upper bounds."""
+    from learn.evaluate import busy, markdown
+    assert not busy(1.0, threads=1, cpus=2) and not busy(2.4, threads=1, cpus=2) and busy(3.0, threads=1, cpus=2)
+    assert not busy(4.2, threads=4, cpus=2) and busy(4.6, threads=4, cpus=2)
+    dist = {"median": 0.05, "p95": 0.1, "worst": 0.2, "n": 2}
+    report = {"n_designs": 2, "split": "val", "max_rel_error": dist, "mean_rel_error": dist,
+              "rollout_ms_per_design": 9.0, "rollout_ms_per_design_eager": 20.0, "rollout_ms_per_design_batched": 3.0,
+              "fea_s_per_episode": 30.0, "speedup": 3333.0, "speedup_batched": 10000.0, "n_invalid": 0,
+              "threads": 1, "model": {}, "designs": [], "load_average": 3.1, "cpus": 2, "timing_busy": True}
+    assert "busy machine (1-minute load 3.1 on 2 CPUs)" in markdown(report)
+    assert "busy machine" not in markdown({**report, "timing_busy": False})
