@@ -36,8 +36,9 @@ solve-demo:  ## solve one sampled design (NP ranks) into data/demo.h5
 dataset:  ## generate N episodes into OUT (JOBS in parallel, NP MPI ranks each); resumable
 	$(PY) -m fea_factory.generate n=$(N) out=$(OUT) jobs=$(JOBS) np=$(NP)
 
-reference-data:  ## the README's learned-simulator data: data/ds_default (400) + data/ds_heldout (50 new designs); resumable; JOBS=2: ~3.5 h
-	$(PY) -m fea_factory.generate n=400 out=data/ds_default jobs=$(JOBS) np=1
+REF_N ?= 400
+reference-data:  ## the README's learned-simulator data: data/ds_default (REF_N=400; 800 since session 17) + data/ds_heldout (50 new designs); resumable; JOBS=2: ~250 episodes/h
+	$(PY) -m fea_factory.generate n=$(REF_N) out=data/ds_default jobs=$(JOBS) np=1
 	$(PY) -m fea_factory.generate n=50 start=100000 out=data/ds_heldout jobs=$(JOBS) np=1
 
 validate:  ## validate every episode in OUT
