@@ -59,8 +59,8 @@ reference-evaluate:  ## CKPT (or CKPT='[a.pt,b.pt]', an ensemble) on the 102 hel
 	$(PY) -m learn.evaluate "checkpoint=$(or $(CKPT),runs/reference/best.pt)" data_dir=data/ds_heldout split=all timing_repeats=1 plots=false threads=1 out_dir=$(REF)/fresh $(ARGS)
 	$(PY) -m learn.combine 'reports=[$(REF)/52,$(REF)/fresh]' out_dir=$(REF)/102
 
-compare:  ## design-by-design comparison of reports against the first (REPORTS=a,b[,c]; LABELS=x,y[,z]; reports/compare/)
-	$(PY) -m learn.compare 'reports=[$(REPORTS)]' $(if $(LABELS),'labels=[$(LABELS)]') out_dir=$(or $(CMP),reports/compare)
+compare:  ## design-by-design comparison of reports against the first (REPORTS=a,b[,c]; LABELS=x,y[,z]; SIZES=n1,n2,..: a scaling fit; reports/compare/)
+	$(PY) -m learn.compare 'reports=[$(REPORTS)]' $(if $(LABELS),'labels=[$(LABELS)]') $(if $(SIZES),'sizes=[$(SIZES)]') out_dir=$(or $(CMP),reports/compare)
 
 curves:  ## training curves of runs side by side, by epoch and by hour (RUNS=runs/a,runs/b; LABELS=x,y; reports/curves/)
 	$(PY) -m learn.curves 'runs=[$(RUNS)]' $(if $(LABELS),'labels=[$(LABELS)]') out_dir=$(or $(CURVES),reports/curves)

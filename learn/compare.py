@@ -7,6 +7,11 @@ max error / design size is lower than the base's, and the median over designs of
 (x0.77: a typical design's error falls by 23 %). The reports are learn.evaluate or learn.combine outputs; they must
 hold the same designs, named by data set and episode. Writes compare.json, compare.md and compare.png (each design's
 error against the base's, log-log).
+
+With `sizes` (one number per report, e.g. its training designs) the reports are points of a scaling curve: each
+design's error is fitted as a N^-b (least squares in log-log over the reports), and the table gives the median of the
+per-design exponents b, the exponents of the median and p95 errors, and the N at which the median would reach
+`target` if the power law held (an extrapolation, stated as one); scaling.png draws median and p95 against N.
 """
 from __future__ import annotations
 
@@ -67,6 +72,74 @@ def compare(reports: list[dict], labels: list[str]) -> dict:
             "max_rel_error": [a.tolist() for a in arrays]}
 
 
+def power_law_exponent(sizes, errors) -> float:
+    """b of errors ~ a sizes^-b, least squares in log-log (errors [..., len(sizes)]: one fit per leading index)."""
+    x = np.log(np.asarray(sizes, dtype=np.float64))
+    y = np.log(np.asarray(errors, dtype=np.float64))
+    xc = x - x.mean()
+    return -((y - y.mean(axis=-1, keepdims=True)) @ xc) / (xc @ xc)
+
+
+def scaling(result: dict, sizes: list[float], target: float) -> dict:
+    """The reports as a scaling curve over `sizes` (compare's result): per-design exponents and those of the median
+    and p95, and the size at which the median would reach `target` by the median's power law."""
+    if len(sizes) != len(result["rows"]):
+        raise ValueError(f"sizes: {len(sizes)} given for {len(result['rows'])} reports (one per report)")
+    if len(set(sizes)) < 2 or min(sizes) <= 0:
+        raise ValueError(f"sizes={sizes}: need positive numbers, at least two different ones")
+    if not 0 < target:
+        raise ValueError(f"target={target}: must be a positive error (a fraction of the design size)")
+    per_design = power_law_exponent(sizes, np.asarray(result["max_rel_error"]).T)  # [designs]
+    out = {"sizes": [float(n) for n in sizes], "target": float(target),
+           "per_design_exponent_median": float(np.median(per_design)),
+           "per_design_exponent_quartiles": [float(q) for q in np.percentile(per_design, [25, 75])]}
+    for stat in ("median", "p95"):
+        values = [r[stat] for r in result["rows"]]
+        b = float(power_law_exponent(sizes, values))
+        big = int(np.argmax(sizes))
+        out[f"{stat}_exponent"] = b
+        out[f"{stat}_at_target_size"] = (float(sizes[big] * (values[big] / target) ** (1.0 / b)) if b > 0
+                                         else None)  # None: no fall with size, no size reaches the target
+    return out
+
+
+def scaling_markdown(sc: dict) -> str:
+    n = lambda v: "never (no fall with size)" if v is None else f"~{v:,.0f}"  # noqa: E731
+    return "\n".join([
+        "", f"## Scaling with size ({', '.join(f'{v:g}' for v in sc['sizes'])}): error ~ N^-b", "",
+        f"- per design: median b = {sc['per_design_exponent_median']:.2f} (quartiles "
+        f"{sc['per_design_exponent_quartiles'][0]:.2f} to {sc['per_design_exponent_quartiles'][1]:.2f})",
+        f"- median error: b = {sc['median_exponent']:.2f}; it would reach {100 * sc['target']:.2f} % at N "
+        f"{n(sc['median_at_target_size'])}",
+        f"- p95 error: b = {sc['p95_exponent']:.2f}; it would reach {100 * sc['target']:.2f} % at N "
+        f"{n(sc['p95_at_target_size'])}",
+        "- (the last two extrapolate a power law fitted over the sizes above: an estimate, not a measurement)", ""])
+
+
+def plot_scaling(result: dict, path: Path) -> None:
+    """Median and p95 of max error / design size against size, log-log, with the fitted power laws."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sc = result["scaling"]
+    sizes = np.asarray(sc["sizes"])
+    grid = np.geomspace(sizes.min(), sizes.max() * 2, 50)
+    fig, ax = plt.subplots(figsize=(6, 4.5))
+    for stat, colour in (("median", "C0"), ("p95", "C1")):
+        values = np.array([100 * r[stat] for r in result["rows"]])
+        ax.scatter(sizes, values, color=colour, label=f"{stat} (b = {sc[f'{stat}_exponent']:.2f})")
+        big = int(np.argmax(sizes))
+        ax.plot(grid, values[big] * (grid / sizes[big]) ** -sc[f"{stat}_exponent"], color=colour, lw=0.8, ls="--")
+    ax.axhline(100 * sc["target"], color="k", lw=0.8, label=f"target {100 * sc['target']:.2f} %")
+    ax.set(xscale="log", yscale="log", xlabel="size (training designs)", ylabel="max error / design size (%)",
+           title=f"{result['n_designs']} held-out designs")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def markdown(result: dict) -> str:
     pct = lambda x: f"{100 * x:.2f} %"  # noqa: E731
     lines = [f"# {result['n_designs']} designs, max error / design size, each report against {result['base']}", "",
@@ -81,7 +154,8 @@ def markdown(result: dict) -> str:
               "|---|" + "---|" * len(result["rows"])]
     lines += [f"| {w['data_dir']}/{w['name']} | " + " | ".join(pct(e) for e in w["errors"]) + " |"
               for w in result["base_worst_designs"]]
-    return "\n".join(lines) + "\n"
+    text = "\n".join(lines) + "\n"
+    return text + scaling_markdown(result["scaling"]) if "scaling" in result else text
 
 
 def plot(result: dict, path: Path) -> None:
@@ -120,7 +194,11 @@ def main(cfg: DictConfig) -> None:
     paths = [str(p) for p in cfg.reports]
     labels = [str(v) for v in cfg.labels] if cfg.labels else paths
     result = compare([read_report(p) for p in paths], labels)
+    if cfg.get("sizes"):
+        result["scaling"] = scaling(result, [float(v) for v in cfg.sizes], float(cfg.target))
     write_outputs(cfg.out_dir, "compare", result, markdown, plot if cfg.plots else None)
+    if cfg.plots and "scaling" in result:
+        plot_scaling(result, Path(cfg.out_dir) / "scaling.png")
 
 
 if __name__ == "__main__":

@@ -83,3 +83,42 @@ def test_curves_refuses_a_directory_without_a_checkpoint(tmp_path):
     from learn.curves import run_history
     with pytest.raises(FileNotFoundError, match="holds no last.pt or best.pt"):
         run_history(tmp_path)
+
+
+def test_a_scaling_fit_recovers_the_exponent_and_extrapolates_the_median():
+    """sizes: each design's error a_i N^-b_i is fitted in log-log; on synthetic reports made with b = 0.4 (per-design
+    prefactors spread over a decade, exponents 0.3-0.5) the per-design median and the median's exponent come back,
+    and the size at which the median reaches the target is the power law's, to round-off."""
+    from learn.compare import scaling
+    rng = np.random.default_rng(0)
+    a, b = rng.uniform(0.02, 0.2, 60), rng.uniform(0.3, 0.5, 60)
+    sizes = [348, 548, 746]
+    reports = [report({f"d{i}": a[i] * (n / 100) ** -b[i] for i in range(60)}) for n in sizes]
+    result = compare(reports, ["348", "548", "746"])
+    sc = scaling(result, sizes, target=0.01)
+    assert sc["per_design_exponent_median"] == pytest.approx(np.median(b), rel=1e-9)
+    assert 0.3 < sc["median_exponent"] < 0.5 and 0.3 < sc["p95_exponent"] < 0.5
+    m = result["rows"][2]["median"]
+    assert sc["median_at_target_size"] == pytest.approx(746 * (m / 0.01) ** (1 / sc["median_exponent"]))
+    flat = scaling(compare([report({"d0": 0.1, "d1": 0.2})] * 2, ["a", "b"]), [100, 200], 0.01)
+    assert flat["median_at_target_size"] is None  # no fall with size: the target is never reached
+    with pytest.raises(ValueError, match="one per report"):
+        scaling(result, [348, 746], 0.01)
+    with pytest.raises(ValueError, match="at least two different"):
+        scaling(result, [348, 348, 348], 0.01)
+
+
+def test_cli_writes_the_scaling_section_and_plot(tmp_path):
+    dirs = []
+    for n in (100, 200, 400):
+        d = tmp_path / f"r{n}"
+        d.mkdir()
+        (d / "report.json").write_text(json.dumps(report({f"d{i}": 0.05 * (i + 1) * (n / 100) ** -0.5
+                                                           for i in range(5)})))
+        dirs.append(str(d))
+    out = tmp_path / "cmp"
+    subprocess.run([sys.executable, "-m", "learn.compare", f"reports=[{','.join(dirs)}]", "sizes=[100,200,400]",
+                    f"out_dir={out}"], cwd=REPO, check=True, capture_output=True)
+    on_disk = json.loads((out / "compare.json").read_text())
+    assert on_disk["scaling"]["median_exponent"] == pytest.approx(0.5)
+    assert "error ~ N^-b" in (out / "compare.md").read_text() and (out / "scaling.png").stat().st_size > 0
