@@ -93,10 +93,10 @@ def scaling(result: dict, sizes: list[float], target: float) -> dict:
     out = {"sizes": [float(n) for n in sizes], "target": float(target),
            "per_design_exponent_median": float(np.median(per_design)),
            "per_design_exponent_quartiles": [float(q) for q in np.percentile(per_design, [25, 75])]}
+    big = int(np.argmax(sizes))  # the extrapolation starts from the largest size measured
     for stat in ("median", "p95"):
         values = [r[stat] for r in result["rows"]]
         b = float(power_law_exponent(sizes, values))
-        big = int(np.argmax(sizes))
         out[f"{stat}_exponent"] = b
         out[f"{stat}_at_target_size"] = (float(sizes[big] * (values[big] / target) ** (1.0 / b)) if b > 0
                                          else None)  # None: no fall with size, no size reaches the target
@@ -125,11 +125,11 @@ def plot_scaling(result: dict, path: Path) -> None:
     sc = result["scaling"]
     sizes = np.asarray(sc["sizes"])
     grid = np.geomspace(sizes.min(), sizes.max() * 2, 50)
+    big = int(np.argmax(sizes))  # the fitted lines pass through the largest size's point, as scaling extrapolates
     fig, ax = plt.subplots(figsize=(6, 4.5))
     for stat, colour in (("median", "C0"), ("p95", "C1")):
         values = np.array([100 * r[stat] for r in result["rows"]])
         ax.scatter(sizes, values, color=colour, label=f"{stat} (b = {sc[f'{stat}_exponent']:.2f})")
-        big = int(np.argmax(sizes))
         ax.plot(grid, values[big] * (grid / sizes[big]) ** -sc[f"{stat}_exponent"], color=colour, lw=0.8, ls="--")
     ax.axhline(100 * sc["target"], color="k", lw=0.8, label=f"target {100 * sc['target']:.2f} %")
     ax.set(xscale="log", yscale="log", xlabel="size (training designs)", ylabel="max error / design size (%)",

@@ -52,7 +52,7 @@ def rank_correlation(x, y) -> float:
 
 # how a report's designs are grouped (with_groups: per_<name> in the report, a row per label in markdown)
 GROUPINGS = {"family": lambda d: d["family"],  # the sampler's random | regular
-             "actuators": lambda d: d.get("actuators", "unknown")}  # all up | all down | ...; reports before session 15: unknown
+             "actuators": lambda d: d.get("actuators", "unknown")}  # all up | all down | ...; older reports: unknown
 
 
 def design_statistics(designs: list[dict]) -> dict:
@@ -240,8 +240,8 @@ def markdown(report: dict, with_designs: bool = True) -> str:
         f"{report['n_invalid']} rollouts flagged invalid",
     ]
     if report.get("timing_busy"):
-        lines += ["", f"Timed on a busy machine (1-minute load {report['load_average']:.1f} on {report['cpus']} CPUs): the "
-                  "times are upper bounds and the speed-ups lower bounds; time on an idle machine with "
+        lines += ["", f"Timed on a busy machine (1-minute load {report['load_average']:.1f} on {report['cpus']} "
+                  "CPUs): the times are upper bounds and the speed-ups lower bounds; time on an idle machine with "
                   "scripts/bench_rollout.py (make bench-rollout)."]
     if "spread_rel" in report:
         sp = report["spread_rel"]

@@ -238,7 +238,9 @@ def test_the_fit_over_turned_blocks_is_the_fit_over_the_stored_set():
     whole = Simulator.fit(args, stored.joint_state, stored.beam_state, stored.static, 1.0)
     for size in (4, 9, 1000):  # one item's 4 copies per block, 2 items per block, everything at once
         blocks = turned.fit_blocks(size)
-        assert [j.shape[1] // 9 for j, _, _ in blocks()][:2] == [min(size // 4, len(base)) * 4] * min(2, -(-len(base) * 4 // size))
+        per = max(size // 4, 1)  # items per block; each item's 4 turned copies, 9 joints each
+        assert [j.shape[1] // 9 for j, _, _ in blocks()] == [4 * min(per, len(base) - s)
+                                                           for s in range(0, len(base), per)]
         fitted = Simulator.fit_blocks(args, blocks, 1.0)
         for name in ("edge_norm", "joint_delta", "beam_delta"):
             for stat in ("mean", "std"):
