@@ -125,7 +125,30 @@ def precision_checked(name) -> str:
 def loss_terms(cfg: DictConfig) -> dict:
     """What the loss weighs besides the state columns (learn.metrics.multistep_loss keywords), for training and
     validation alike."""
-    return {"geometry": cfg.get("loss_geometry", "columns"), "chord_weight": float(cfg.get("chord_weight", 0.0))}
+    return {"geometry": cfg.get("loss_geometry", "columns"), "chord_weight": weight_checked(cfg, "chord_weight",
+                                                                                         "no chord term")}
+
+
+def weight_checked(cfg: DictConfig, name: str, meaning: str) -> float:
+    """A loss weight from conf/train.yaml: a number in [0, 100], else an error naming the key."""
+    w = cfg.get(name, 0.0)
+    if isinstance(w, bool) or not isinstance(w, (int, float)) or not 0 <= w <= 100:
+        raise ValueError(f"{name}={w!r}: must be a number in [0, 100] (0 = {meaning})")
+    return float(w)
+
+
+def training_loss(model: Simulator, batch: GraphSet, cfg: DictConfig, generator: torch.Generator) -> torch.Tensor:
+    """The loss a training step descends: the multi-step loss over `rollout_horizon` steps, plus, at
+    `teacher_weight`, the one-step loss from every FEA frame (teacher forcing), which holds each step to the FEA's
+    next state, where the rollout loss alone lets the steps trade their errors (docs/learned_simulator.md,
+    session 18)."""
+    loss = multistep_loss(model, batch, cfg.rollout_horizon, cfg.noise_std, cfg.stress_weight, generator,
+                          through=cfg.get("rollout_gradient", "through") == "through", **loss_terms(cfg))
+    teacher = weight_checked(cfg, "teacher_weight", "no one-step term")
+    if teacher > 0:
+        loss = loss + teacher * multistep_loss(model, batch, 1, cfg.noise_std, cfg.stress_weight, generator,
+                                               **loss_terms(cfg))
+    return loss
 
 
 def train_epoch(model: Simulator, opt: torch.optim.Optimizer, train_set: GraphSet, cfg: DictConfig,
@@ -142,8 +165,7 @@ def train_epoch(model: Simulator, opt: torch.optim.Optimizer, train_set: GraphSe
     bf16 = precision_checked(cfg.get("precision", "fp32")) == "bf16"
     for batch in train_set.batches(cfg.batch_size, gen, redrawn):
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-            loss = multistep_loss(model, batch, cfg.rollout_horizon, cfg.noise_std, cfg.stress_weight, gen,
-                                  through=cfg.get("rollout_gradient", "through") == "through", **loss_terms(cfg))
+            loss = training_loss(model, batch, cfg, gen)
         opt.zero_grad()
         loss.backward()
         if cfg.optim.grad_clip:
@@ -208,9 +230,8 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
         raise ValueError(f"rollout_gradient={cfg.rollout_gradient!r}: must be through | stop")
     n_probe = integer_in(cfg.get("train_probe", 0), "train_probe", 0, 10**6,
                          "training designs whose rollout error is logged every epoch; 0 = none")
-    chord_weight = cfg.get("chord_weight", 0.0)
-    if isinstance(chord_weight, bool) or not isinstance(chord_weight, (int, float)) or not 0 <= chord_weight <= 100:
-        raise ValueError(f"chord_weight={chord_weight!r}: must be a number in [0, 100] (0 = no chord term)")
+    weight_checked(cfg, "chord_weight", "no chord term")
+    weight_checked(cfg, "teacher_weight", "no one-step term")
     last = run_dir / LAST
     resumed = checkpoint.load(last) if cfg.resume and last.exists() else None
     if resumed is not None and resumed.get("finished"):

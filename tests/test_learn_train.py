@@ -246,7 +246,7 @@ def test_every_model_config_composes_and_trains(data_dir, tmp_path, model_name):
 
 @pytest.mark.parametrize("option", ["model.update=kinematic", "loss_geometry=points", "rollout_gradient=stop",
                                     "model.frame=fixed", "rotations_redraw=true", "lattice_turns=4",
-                                    "chord_weight=1.0", "precision=bf16"])
+                                    "chord_weight=1.0", "precision=bf16", "teacher_weight=1.0"])
 def test_training_options_reduce_the_loss(data_dir, tmp_path, option):
     summary = train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=16", "optim.lr=3e-3", "batch_size=1",
                                           "rollout_horizon=3", option)))
@@ -362,6 +362,26 @@ def test_beam_chords_are_the_section_centre_differences_and_weigh_in_the_loss():
     assert with_chords > plain > 0
 
 
+def test_the_teacher_term_adds_the_one_step_loss_from_every_fea_frame():
+    from omegaconf import OmegaConf
+
+    from learn.metrics import multistep_loss
+    from learn.train import training_loss
+    data = GraphSet.build([extract(synthetic_episode(3, 3, 5, 3, 3, 4, seed=s)) for s in range(2)])
+    model = Simulator.fit({"core": "double_gn", "latent": 8, "widths": [16]}, data.joint_state, data.beam_state,
+                          data.static)
+    cfg = OmegaConf.create({"rollout_horizon": 3, "noise_std": 0.0, "stress_weight": 0.1, "teacher_weight": 0.0})
+    gen = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        rollout, one_step = (multistep_loss(model, data, h, 0.0, 0.1) for h in (3, 1))
+        plain = training_loss(model, data, cfg, gen)
+        cfg.teacher_weight = 0.5
+        taught = training_loss(model, data, cfg, gen)
+    assert one_step > 0
+    torch.testing.assert_close(plain, rollout)
+    torch.testing.assert_close(taught, rollout + 0.5 * one_step)
+
+
 def test_an_unknown_loss_geometry_is_refused(data_dir, tmp_path):
     with pytest.raises(ValueError, match="loss geometry='mesh': must be columns | points"):
         train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=1", "loss_geometry=mesh")))
@@ -370,6 +390,8 @@ def test_an_unknown_loss_geometry_is_refused(data_dir, tmp_path):
 @pytest.mark.parametrize("option, message", [("mirror=2", "mirror=2: must be true or false"),
                                              ("lattice_turns=3", r"lattice_turns=3: must be one of \[1, 2, 4\]"),
                                              ("chord_weight=-1", r"chord_weight=-1: must be a number in \[0, 100\]"),
+                                             ("teacher_weight=true",
+                                              r"teacher_weight=True: must be a number in \[0, 100\]"),
                                              ("train_probe=-1", r"train_probe=-1: must be an integer in \[0, ")])
 def test_a_bad_augmentation_option_is_refused_naming_it(data_dir, tmp_path, option, message):
     with pytest.raises(ValueError, match=message):
