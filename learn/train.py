@@ -142,12 +142,12 @@ def training_loss(model: Simulator, batch: GraphSet, cfg: DictConfig, generator:
     `teacher_weight`, the one-step loss from every FEA frame (teacher forcing), which holds each step to the FEA's
     next state, where the rollout loss alone lets the steps trade their errors (docs/learned_simulator.md,
     session 18)."""
+    terms = loss_terms(cfg)
     loss = multistep_loss(model, batch, cfg.rollout_horizon, cfg.noise_std, cfg.stress_weight, generator,
-                          through=cfg.get("rollout_gradient", "through") == "through", **loss_terms(cfg))
+                          through=cfg.get("rollout_gradient", "through") == "through", **terms)
     teacher = weight_checked(cfg, "teacher_weight", "no one-step term")
     if teacher > 0:
-        loss = loss + teacher * multistep_loss(model, batch, 1, cfg.noise_std, cfg.stress_weight, generator,
-                                               **loss_terms(cfg))
+        loss = loss + teacher * multistep_loss(model, batch, 1, cfg.noise_std, cfg.stress_weight, generator, **terms)
     return loss
 
 
