@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 
 from data_schema.episode import write_episode
 from data_schema.testing import synthetic_episode
@@ -522,6 +523,19 @@ def test_the_reference_experiment_composes_the_full_scale_recipe_over_the_defaul
     assert (REPO / cfg.split_from).exists()
     assert cfg.model == default.model and cfg.lattice_turns == default.lattice_turns and cfg.mirror == default.mirror
     assert cfg.optim.lr == default.optim.lr and cfg.batch_size == default.batch_size
+
+
+def test_the_memorisation_probe_is_the_reference_on_26_designs_trained_as_probed():
+    """conf/experiment/memorise.yaml: the reference recipe (model, data, split, schedule shape) with only what makes
+    it a probe changed: 26 designs seen exactly as the training probe sees them, 13,000 small steps."""
+    probe = OmegaConf.to_container(cfg_for("train", ["+experiment=memorise"]))
+    reference = OmegaConf.to_container(cfg_for("train", ["+experiment=reference"]))
+    changed = {k for k in reference if probe[k] != reference[k]}
+    assert changed == {"run_dir", "train_designs", "rotations", "lattice_turns", "mirror", "batch_size", "epochs",
+                       "patience", "checkpoint_every", "log_every", "precision", "time_limit_min"}
+    assert probe["train_designs"] == probe["train_probe"] == 26
+    assert (probe["rotations"], probe["lattice_turns"], probe["mirror"]) == (1, 1, False)
+    assert probe["patience"] > probe["epochs"]
 
 
 def test_bf16_training_rounds_the_network_not_the_states_and_a_bad_precision_is_refused(trained, data_dir, tmp_path):
