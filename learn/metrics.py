@@ -26,7 +26,8 @@ def beam_chords(beam_state: torch.Tensor) -> torch.Tensor:
 
 def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_std: float = 0.0,
                    stress_weight: float = 1.0, generator: torch.Generator | None = None,
-                   geometry: str = "columns", through: bool = True, chord_weight: float = 0.0) -> torch.Tensor:
+                   geometry: str = "columns", through: bool = True, chord_weight: float = 0.0,
+                   final_weight: float = 0.0) -> torch.Tensor:
     """Mean squared error of the states after 1..horizon steps from every start frame; `noise_std` (in units of
     the per-column step std) perturbs the start states so the model learns to correct its own drift.
     geometry="columns": every state column in units of its step std (stress columns weighted by stress_weight);
@@ -36,7 +37,9 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
     from the state the model itself reached, to the FEA's next state.
     chord_weight > 0 adds the beams' half chords (beam_chords) in units of their FEA step std over the batch, weighted
     so: the turn of each beam relative to itself, which the absolute columns (whose step std is the motion of the
-    whole grid) weigh little, and which carried by the lever arm is most of the position error (docs/learned_simulator.md)."""
+    whole grid) weigh little, and which carried by the lever arm is most of the position error (docs/learned_simulator.md).
+    final_weight > 0 adds, at that weight, the state columns' error at the episode's final frame (where the unroll
+    reaches it): the shape a designer asks for, and the frame whose error the evaluation's max over frames mostly is."""
     if geometry not in ("columns", "points"):
         raise ValueError(f"loss geometry={geometry!r}: must be columns | points")
     F = len(batch.t)
@@ -62,12 +65,14 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
         tj, tb = batch.joint_state[k + 1:S + k + 1], batch.beam_state[k + 1:S + k + 1]
         ej, eb = (j - tj) / model.joint_delta.std, (b - tb) / model.beam_delta.std
         loss = loss + (wj * ej ** 2).mean() + (wb * eb ** 2).mean()
+        if final_weight > 0 and k == h - 1:  # start S-1, step h-1: the final frame F-1
+            final = (wj * ej[-1] ** 2).mean() + (wb * eb[-1] ** 2).mean()
         if chord_weight > 0:
             loss = loss + chord_weight * ((beam_chords(b) - beam_chords(tb)) / chord_std).square().mean()
         if points:
             d = (rebuild_all_points(j, b) - rebuild_all_points(tj, tb)) / scale
             loss = loss + d.square().sum(-1).mean()
-    return loss / h
+    return loss / h + (final_weight * final if final_weight > 0 else 0.0)
 
 
 def point_owner(batch: GraphSet) -> np.ndarray:

@@ -125,8 +125,9 @@ def precision_checked(name) -> str:
 def loss_terms(cfg: DictConfig) -> dict:
     """What the loss weighs besides the state columns (learn.metrics.multistep_loss keywords), for training and
     validation alike."""
-    return {"geometry": cfg.get("loss_geometry", "columns"), "chord_weight": weight_checked(cfg, "chord_weight",
-                                                                                         "no chord term")}
+    return {"geometry": cfg.get("loss_geometry", "columns"),
+            "chord_weight": weight_checked(cfg, "chord_weight", "no chord term"),
+            "final_weight": weight_checked(cfg, "final_weight", "the final frame weighs as every other")}
 
 
 def weight_checked(cfg: DictConfig, name: str, meaning: str) -> float:
@@ -230,7 +231,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
         raise ValueError(f"rollout_gradient={cfg.rollout_gradient!r}: must be through | stop")
     n_probe = integer_in(cfg.get("train_probe", 0), "train_probe", 0, 10**6,
                          "training designs whose rollout error is logged every epoch; 0 = none")
-    weight_checked(cfg, "chord_weight", "no chord term")
+    loss_terms(cfg)  # every loss weight checked before any data are read
     weight_checked(cfg, "teacher_weight", "no one-step term")
     last = run_dir / LAST
     resumed = checkpoint.load(last) if cfg.resume and last.exists() else None

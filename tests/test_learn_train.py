@@ -19,7 +19,7 @@ from learn import checkpoint
 from learn.evaluate import evaluate
 from learn.dataset import GraphSet, augment, load_features
 from learn.features import extract, rebuild_all_points
-from learn.graph import BEAM
+from learn.graph import BEAM, JOINT
 from learn.metrics import rollout_errors
 from learn.model import Simulator
 from learn.rollout import reference, rollout
@@ -383,6 +383,25 @@ def test_the_teacher_term_adds_the_one_step_loss_from_every_fea_frame():
     torch.testing.assert_close(taught, rollout + 0.5 * one_step)
 
 
+def test_the_final_weight_adds_the_final_frames_error_of_the_unroll_that_reaches_it():
+    """final_weight w: the multi-step loss plus w x the state columns' error at the episode's last frame, computed
+    here from an independent unroll of the last start frame (learn.rollout.unroll) with the same column weights."""
+    from learn.metrics import column_weights, multistep_loss
+    from learn.rollout import unroll
+    data = GraphSet.build([extract(synthetic_episode(3, 3, 5, 3, 3, 4, seed=s)) for s in range(2)])
+    model = Simulator.fit({"core": "double_gn", "latent": 8, "widths": [16]}, data.joint_state, data.beam_state,
+                          data.static)
+    F, h = len(data.t), 3
+    with torch.no_grad():
+        plain, weighted = (multistep_loss(model, data, h, 0.0, 0.1, final_weight=w) for w in (0.0, 2.0))
+        js, bs = unroll(model, data.joint_state[F - 1 - h], data.beam_state[F - 1 - h], data.static, data.t[F - 1 - h:])
+    ej = (js[-1] - data.joint_state[-1]) / model.joint_delta.std
+    eb = (bs[-1] - data.beam_state[-1]) / model.beam_delta.std
+    final = (column_weights(JOINT, 0.1) * ej ** 2).mean() + (column_weights(BEAM, 0.1) * eb ** 2).mean()
+    assert final > 0
+    torch.testing.assert_close(weighted, plain + 2.0 * final)
+
+
 def test_an_unknown_loss_geometry_is_refused(data_dir, tmp_path):
     with pytest.raises(ValueError, match="loss geometry='mesh': must be columns | points"):
         train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=1", "loss_geometry=mesh")))
@@ -393,6 +412,8 @@ def test_an_unknown_loss_geometry_is_refused(data_dir, tmp_path):
                                              ("chord_weight=-1", r"chord_weight=-1: must be a number in \[0, 100\]"),
                                              ("teacher_weight=true",
                                               r"teacher_weight=True: must be a number in \[0, 100\]"),
+                                             ("final_weight=-0.5",
+                                              r"final_weight=-0.5: must be a number in \[0, 100\]"),
                                              ("train_probe=-1", r"train_probe=-1: must be an integer in \[0, ")])
 def test_a_bad_augmentation_option_is_refused_naming_it(data_dir, tmp_path, option, message):
     with pytest.raises(ValueError, match=message):
