@@ -231,7 +231,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
         raise ValueError(f"rollout_gradient={cfg.rollout_gradient!r}: must be through | stop")
     n_probe = integer_in(cfg.get("train_probe", 0), "train_probe", 0, 10**6,
                          "training designs whose rollout error is logged every epoch; 0 = none")
-    loss_terms(cfg)  # every loss weight checked before any data are read
+    loss_terms(cfg)  # its weights, and the teacher's below, checked before any data are read
     weight_checked(cfg, "teacher_weight", "no one-step term")
     last = run_dir / LAST
     resumed = checkpoint.load(last) if cfg.resume and last.exists() else None
