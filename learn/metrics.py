@@ -57,6 +57,7 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
         scale = scale.mean()
     if chord_weight > 0:
         chord_std = beam_chords(batch.beam_state).diff(dim=0).flatten(0, -2).std(0).clamp_min(1e-3)
+    columns = lambda ej, eb: (wj * ej ** 2).mean() + (wb * eb ** 2).mean()  # noqa: E731
     loss = torch.zeros(())
     for k in range(h):
         if not through:
@@ -64,15 +65,16 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
         j, b = model.step(j, b, batch.static, batch.t[k:S + k])
         tj, tb = batch.joint_state[k + 1:S + k + 1], batch.beam_state[k + 1:S + k + 1]
         ej, eb = (j - tj) / model.joint_delta.std, (b - tb) / model.beam_delta.std
-        loss = loss + (wj * ej ** 2).mean() + (wb * eb ** 2).mean()
-        if final_weight > 0 and k == h - 1:  # start S-1, step h-1: the final frame F-1
-            final = (wj * ej[-1] ** 2).mean() + (wb * eb[-1] ** 2).mean()
+        loss = loss + columns(ej, eb)
         if chord_weight > 0:
             loss = loss + chord_weight * ((beam_chords(b) - beam_chords(tb)) / chord_std).square().mean()
         if points:
             d = (rebuild_all_points(j, b) - rebuild_all_points(tj, tb)) / scale
             loss = loss + d.square().sum(-1).mean()
-    return loss / h + (final_weight * final if final_weight > 0 else 0.0)
+    loss = loss / h
+    if final_weight > 0:  # the last step from the last start frame S-1 lands on the episode's final frame F-1
+        loss = loss + final_weight * columns(ej[-1], eb[-1])
+    return loss
 
 
 def point_owner(batch: GraphSet) -> np.ndarray:

@@ -364,8 +364,6 @@ def test_beam_chords_are_the_section_centre_differences_and_weigh_in_the_loss():
 
 
 def test_the_teacher_term_adds_the_one_step_loss_from_every_fea_frame():
-    from omegaconf import OmegaConf
-
     from learn.metrics import multistep_loss
     from learn.train import training_loss
     data = GraphSet.build([extract(synthetic_episode(3, 3, 5, 3, 3, 4, seed=s)) for s in range(2)])
