@@ -55,6 +55,20 @@ GROUPINGS = {"family": lambda d: d["family"],  # the sampler's random | regular
              "actuators": lambda d: d.get("actuators", "unknown")}  # all up | all down | ...; older reports: unknown
 
 
+def by_frame(designs: list[dict]) -> dict | None:
+    """Per frame k, over the designs: the median and p95 of the max error / design size, and the median FEA step
+    (the largest node motion from frame k-1 to k / design size), so the error's growth reads against the motion it
+    follows. None when the designs' frame counts differ or a report predates the FEA step."""
+    errors = [d["max_rel_error_per_frame"] for d in designs]
+    steps = [d.get("fea_step_rel_per_frame") for d in designs]
+    if not designs or any(s is None for s in steps) or len({len(e) for e in errors + steps}) != 1:
+        return None
+    errors, steps = np.asarray(errors, dtype=np.float64), np.asarray(steps, dtype=np.float64)
+    return {"max_rel_error_median": np.median(errors, 0).tolist(),
+            "max_rel_error_p95": np.percentile(errors, 95, axis=0).tolist(),
+            "fea_step_rel_median": np.median(steps, 0).tolist()}
+
+
 def design_statistics(designs: list[dict]) -> dict:
     """The error distributions of a report over its per-design entries (overall and per family for the errors);
     for an ensemble also its members' spread and how well the spread ranks the designs by error."""
@@ -70,7 +84,16 @@ def design_statistics(designs: list[dict]) -> dict:
     if designs and all(v is not None for v in spread):
         out["spread_rel"] = distribution(spread)
         out["spread_error_spearman"] = rank_correlation(spread, [d["max_rel_error"] for d in designs])
+    frames = by_frame(designs)
+    if frames is not None:
+        out["by_frame"] = frames
     return out
+
+
+def fea_steps(f: EpisodeFeatures) -> np.ndarray:
+    """[F] the largest motion of a rebuilt point from the FEA's frame k-1 to frame k / design size (0 at frame 0)."""
+    step = np.linalg.norm(np.diff(f.fea_points, axis=0), axis=-1).max(axis=1) / f.design_size
+    return np.concatenate([[0.0], step])
 
 
 def median_seconds(fn, repeats: int) -> float:
@@ -162,6 +185,7 @@ def evaluate(cfg: DictConfig) -> dict:
             "max_error_mm": float(err.max()),
             "max_rel_error_per_frame": (err.max(axis=1) / f.design_size).tolist(),
             "mean_rel_error_per_frame": (err.mean(axis=1) / f.design_size).tolist(),
+            "fea_step_rel_per_frame": fea_steps(f).tolist(),
             "representation_floor": float(floor.max() / f.design_size),
             "input_floor": float(seen.max() / f.design_size),
             "fea_s": f.fea_seconds, "valid": verdict.valid, "validity": verdict.as_dict(),
@@ -248,6 +272,15 @@ def markdown(report: dict, with_designs: bool = True) -> str:
         lines += ["", f"ensemble of {report['model'].get('ensemble_members')}: members' spread / design size "
                   f"{_pct(sp['median'])} median, {_pct(sp['p95'])} p95, {_pct(sp['worst'])} worst; Spearman with the "
                   f"max error {report['spread_error_spearman']:.2f}"]
+    if "by_frame" in report:
+        fr = report["by_frame"]
+        lines += ["", "By frame (the max over frames is mostly the last one's):", "",
+                  "| frame | " + " | ".join(str(k) for k in range(1, len(fr["fea_step_rel_median"]))) + " |",
+                  "|---" * len(fr["fea_step_rel_median"]) + "|",
+                  *("| " + label + " | " + " | ".join(_pct(v) for v in fr[key][1:]) + " |"
+                    for key, label in (("max_rel_error_median", "max error, median"),
+                                       ("max_rel_error_p95", "max error, p95"),
+                                       ("fea_step_rel_median", "FEA step, median")))]
     if with_designs:
         lines += ["", "| design | family | actuators | size mm | max err | mean err | floor | valid |",
                   "|---|---|---|---|---|---|---|---|"]

@@ -171,6 +171,14 @@ def test_evaluate_writes_the_report(trained, tmp_path):
     assert sum(g["n"] for g in groups.values()) == on_disk["n_designs"]
     assert set(groups) == {d["actuators"] for d in on_disk["designs"]} <= {"all up", "all down", "all passive", "mixed"}
     assert len(on_disk["designs"][0]["max_rel_error_per_frame"]) == 11
+    frames = on_disk["by_frame"]  # per frame over the designs, against the FEA's own step
+    errors = np.array([d["max_rel_error_per_frame"] for d in on_disk["designs"]])
+    assert frames["max_rel_error_median"] == pytest.approx(np.median(errors, 0).tolist())
+    assert frames["fea_step_rel_median"][0] == 0 and len(frames["fea_step_rel_median"]) == 11
+    f = load_features([Path(report["data_dir"]) / on_disk["designs"][0]["name"]])[0]
+    first = [max(np.linalg.norm(f.fea_points[k] - f.fea_points[k - 1], axis=-1)) / f.design_size for k in (1, 10)]
+    assert [on_disk["designs"][0]["fea_step_rel_per_frame"][k] for k in (1, 10)] == pytest.approx(first, rel=1e-6)
+    assert "By frame" in (tmp_path / "report.md").read_text()
     assert on_disk["load_average"] >= 0 and on_disk["cpus"] >= 1 and isinstance(on_disk["timing_busy"], bool)
     assert (tmp_path / "report.md").exists() and (tmp_path / "error_vs_step.png").stat().st_size > 0
     assert (tmp_path / "overlay_best_median_worst.png").exists()
@@ -212,6 +220,7 @@ def test_combine_pools_reports_of_one_model_over_the_union_of_designs(trained, d
     """learn.combine: the val and test reports pooled equal the val+test report's distributions (same designs);
     reports of two different checkpoints or the same design twice are refused."""
     from learn.combine import combine
+    from learn.evaluate import by_frame
     run, _ = trained
     base = [f"checkpoint={run / 'best.pt'}", f"data_dir={data_dir}", "timing_repeats=1", "plots=false"]
     parts = {s: evaluate(cfg_for("evaluate", base + [f"out_dir={tmp_path / s}", f"split={s}"]))
@@ -222,6 +231,11 @@ def test_combine_pools_reports_of_one_model_over_the_union_of_designs(trained, d
         for stat in ("median", "p95", "worst"):
             assert pooled[key][stat] == pytest.approx(parts["val+test"][key][stat])
     assert pooled["speedup"] == pytest.approx(pooled["fea_s_per_episode"] / pooled["rollout_ms_per_design"] * 1e3)
+    for key, values in parts["val+test"]["by_frame"].items():
+        assert pooled["by_frame"][key] == pytest.approx(values)
+    older = [{k: v for k, v in d.items() if k != "fea_step_rel_per_frame"} for d in pooled["designs"]]
+    uneven = [pooled["designs"][0], {**pooled["designs"][1], "max_rel_error_per_frame": [0.0] * 3}]
+    assert by_frame(older) is None and by_frame(uneven) is None  # a report before the FEA step; unequal frame counts
     busy_one = combine([{**parts["val"], "timing_busy": True, "load_average": 3.2}, parts["test"]])
     assert busy_one["timing_busy"] and busy_one["load_average"] >= 3.2  # one busy source makes the pooled timing busy
     with pytest.raises(ValueError, match="more than once"):
