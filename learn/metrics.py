@@ -26,15 +26,17 @@ def beam_chords(beam_state: torch.Tensor) -> torch.Tensor:
 
 def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_std: float = 0.0,
                    stress_weight: float = 1.0, generator: torch.Generator | None = None,
-                   geometry: str = "columns", through: bool = True, chord_weight: float = 0.0,
+                   geometry: str = "columns", carry: float = 1.0, chord_weight: float = 0.0,
                    final_weight: float = 0.0) -> torch.Tensor:
     """Mean squared error of the states after 1..horizon steps from every start frame; `noise_std` (in units of
     the per-column step std) perturbs the start states so the model learns to correct its own drift.
     geometry="columns": every state column in units of its step std (stress columns weighted by stress_weight);
     geometry="points": the geometry as the points it rebuilds (what the evaluation measures), their distance to
     the FEA's in units of the mean geometry step std, plus the stress columns as above.
-    through=False stops the gradient between steps (the pushforward trick): every step is trained as a single step,
-    from the state the model itself reached, to the FEA's next state.
+    carry: the fraction of the gradient carried back from each step into the state it started from. 1: through the
+    whole unroll; 0: stopped between steps (the pushforward trick: every step is trained as a single step, from the
+    state the model itself reached, to the FEA's next state); in between, a frame's error presses on the earlier
+    steps at carry^(distance), so the early steps weigh less against the last ones. The loss value is the same.
     chord_weight > 0 adds the beams' half chords (beam_chords) in units of their FEA step std over the batch, weighted
     so: the turn of each beam relative to itself, which the absolute columns (whose step std is the motion of the
     whole grid) weigh little, and which carried by the lever arm is most of the position error (docs/learned_simulator.md).
@@ -60,8 +62,10 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
     columns = lambda ej, eb: (wj * ej ** 2).mean() + (wb * eb ** 2).mean()  # noqa: E731
     loss = torch.zeros(())
     for k in range(h):
-        if not through:
+        if carry == 0:
             j, b = j.detach(), b.detach()
+        elif carry < 1:  # the same states forward, carry x the gradient backward
+            j, b = carry * j + (1 - carry) * j.detach(), carry * b + (1 - carry) * b.detach()
         j, b = model.step(j, b, batch.static, batch.t[k:S + k])
         tj, tb = batch.joint_state[k + 1:S + k + 1], batch.beam_state[k + 1:S + k + 1]
         ej, eb = (j - tj) / model.joint_delta.std, (b - tb) / model.beam_delta.std

@@ -130,6 +130,19 @@ def loss_terms(cfg: DictConfig) -> dict:
             "final_weight": weight_checked(cfg, "final_weight", "the final frame weighs as every other")}
 
 
+def gradient_carry(cfg: DictConfig) -> float:
+    """conf/train.yaml rollout_gradient as the fraction of the gradient a step passes back to the state it started
+    from: through = 1, stop = 0, or a number in between; else an error naming the key."""
+    value = cfg.get("rollout_gradient", "through")
+    named = {"through": 1.0, "stop": 0.0}
+    if isinstance(value, str) and value in named:
+        return named[value]
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= 1:
+        raise ValueError(f"rollout_gradient={value!r}: must be through | stop | a number in [0, 1] "
+                         "(the fraction of the gradient carried back between steps)")
+    return float(value)
+
+
 def weight_checked(cfg: DictConfig, name: str, meaning: str) -> float:
     """A loss weight from conf/train.yaml: a number in [0, 100], else an error naming the key."""
     w = cfg.get(name, 0.0)
@@ -145,7 +158,7 @@ def training_loss(model: Simulator, batch: GraphSet, cfg: DictConfig, generator:
     session 18)."""
     terms = loss_terms(cfg)
     loss = multistep_loss(model, batch, cfg.rollout_horizon, cfg.noise_std, cfg.stress_weight, generator,
-                          through=cfg.get("rollout_gradient", "through") == "through", **terms)
+                          carry=gradient_carry(cfg), **terms)
     teacher = weight_checked(cfg, "teacher_weight", "no one-step term")
     if teacher > 0:
         loss = loss + teacher * multistep_loss(model, batch, 1, cfg.noise_std, cfg.stress_weight, generator, **terms)
@@ -227,8 +240,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
     ema_decay_checked(cfg.optim.get("ema_decay", 0.0))
     schedule_checked(cfg.optim.get("schedule", "step"))
     precision_checked(cfg.get("precision", "fp32"))
-    if cfg.get("rollout_gradient", "through") not in ("through", "stop"):
-        raise ValueError(f"rollout_gradient={cfg.rollout_gradient!r}: must be through | stop")
+    gradient_carry(cfg)
     n_probe = integer_in(cfg.get("train_probe", 0), "train_probe", 0, 10**6,
                          "training designs whose rollout error is logged every epoch; 0 = none")
     loss_terms(cfg)  # its weights, and the teacher's below, checked before any data are read

@@ -240,8 +240,9 @@ def test_input_floor_is_zero_with_every_component_and_grows_as_the_pca_drops_som
 
 
 def test_a_stopped_rollout_gradient_trains_each_step_from_the_state_the_model_reached(features):
-    """multistep_loss(through=False): the same loss value, and the gradient of step 2 is that of a single step
-    from the (detached) state step 1 produced."""
+    """multistep_loss(carry=0): the same loss value, and the gradient of step 2 is that of a single step from the
+    (detached) state step 1 produced; carry=0.5 over two steps: the gradient is halfway between stopped and through
+    (step 2's error reaches step 1 at half weight), the loss value the same."""
     from learn.metrics import multistep_loss
     train = GraphSet.build(features[:2])
     torch.manual_seed(0)
@@ -253,8 +254,8 @@ def test_a_stopped_rollout_gradient_trains_each_step_from_the_state_the_model_re
         return torch.cat([g.flatten() for g in torch.autograd.grad(loss, params)])
 
     h, S = 2, len(train.t) - 2
-    through, stop = (multistep_loss(model, train, h, through=flag) for flag in (True, False))
-    assert torch.allclose(through, stop)
+    through, half, stop = (multistep_loss(model, train, h, carry=c) for c in (1.0, 0.5, 0.0))
+    assert torch.allclose(through, stop) and torch.allclose(half, stop)
     # by hand: step 1 from the FEA states, step 2 from step 1's output with its history cut
     j, b = train.joint_state[:S], train.beam_state[:S]
     total = torch.zeros(())
@@ -267,7 +268,9 @@ def test_a_stopped_rollout_gradient_trains_each_step_from_the_state_the_model_re
         total = total + (w_j * ej ** 2).mean() + (w_b * eb ** 2).mean()
     g_stop = grads(stop)
     assert torch.allclose(g_stop, grads(total / h), atol=1e-6)
-    assert not torch.allclose(grads(through), g_stop, atol=1e-6)
+    g_through = grads(through)
+    assert not torch.allclose(g_through, g_stop, atol=1e-6)
+    assert torch.allclose(grads(half), (g_through + g_stop) / 2, atol=1e-6)
 
 
 @pytest.mark.parametrize("update", ["additive", "kinematic"])

@@ -260,7 +260,7 @@ def test_every_model_config_composes_and_trains(data_dir, tmp_path, model_name):
 
 
 @pytest.mark.parametrize("option", ["model.update=kinematic", "loss_geometry=points", "rollout_gradient=stop",
-                                    "model.frame=fixed", "rotations_redraw=true", "lattice_turns=4",
+                                    "rollout_gradient=0.5", "model.frame=fixed", "rotations_redraw=true", "lattice_turns=4",
                                     "chord_weight=1.0", "precision=bf16", "teacher_weight=1.0"])
 def test_training_options_reduce_the_loss(data_dir, tmp_path, option):
     summary = train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=16", "optim.lr=3e-3", "batch_size=1",
@@ -426,7 +426,9 @@ def test_an_unknown_loss_geometry_is_refused(data_dir, tmp_path):
                                               r"teacher_weight=True: must be a number in \[0, 100\]"),
                                              ("final_weight=-0.5",
                                               r"final_weight=-0.5: must be a number in \[0, 100\]"),
-                                             ("train_probe=-1", r"train_probe=-1: must be an integer in \[0, ")])
+                                             ("train_probe=-1", r"train_probe=-1: must be an integer in \[0, "),
+                                             ("rollout_gradient=1.5", r"rollout_gradient=1.5: must be through \| stop"),
+                                             ("rollout_gradient=back", r"rollout_gradient='back': must be through")])
 def test_a_bad_augmentation_option_is_refused_naming_it(data_dir, tmp_path, option, message):
     with pytest.raises(ValueError, match=message):
         train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=1", option)))
