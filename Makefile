@@ -12,7 +12,7 @@ export OMPI_ALLOW_RUN_AS_ROOT=1
 export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset reference-data validate bench-fea stability bench-rollout tradeoff train evaluate reference-train reference-evaluate compare curves diagnose predict sweep learned-extremes clean
+.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset reference-data validate fingerprint bench-fea stability bench-rollout tradeoff train evaluate reference-train reference-evaluate compare curves diagnose predict sweep learned-extremes clean
 
 help:  ## list the targets
 	@grep -E '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-12s %s\n", $$1, $$2}'
@@ -43,6 +43,10 @@ reference-data:  ## the README's learned-simulator data: data/ds_default (REF_N=
 
 validate:  ## validate every episode in OUT
 	$(PY) -m data_schema.validate $(OUT)
+
+FP ?= conf/held_out/ds_default_fingerprint.csv
+fingerprint:  ## is OUT the data a result was measured on? checks OUT against FP (WRITE=1: write FP from OUT instead)
+	$(PY) -m data_schema.fingerprint $(OUT) $(if $(WRITE),--write,--check) $(FP)
 
 train:  ## train the Double GN on the episodes in OUT (resumes runs/train/last.pt)
 	$(PY) -m learn.train data_dir=$(OUT)
