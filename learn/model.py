@@ -181,7 +181,8 @@ class Simulator(nn.Module):
           about z, so the rotation augmentation adds nothing),
           update ("additive": G(t+1) = G(t) + dG, the thesis; "kinematic": geometry updates are
           predicted in each block's parent frame and placed outward from the fixed joint, learn/kinematics.py;
-          stress stays additive), pca ({term: [D, K]} for every name in TERMS)
+          stress stays additive), stress_input (bool, default true: the stress terms are network inputs; false:
+          predicted and carried in the state, not read back), pca ({term: [D, K]} for every name in TERMS)
           -- all plain types, so they are saved in checkpoints.
     """
 
@@ -203,8 +204,8 @@ class Simulator(nn.Module):
             self.joint_rel_delta = Normalizer(JOINT.geometry.size)
             self.beam_rel_delta = Normalizer(BEAM.geometry.size)
         extra = (1 if args.get("time_input", True) else 0) + (3 if self.local else 0)
-        joint_in = sum(self.pca[t].k for t in TERMS[:3]) + extra
-        beam_in = sum(self.pca[t].k for t in TERMS[3:]) + extra
+        joint_in = sum(self.pca[t].k for t in self.input_terms(JOINT)) + extra
+        beam_in = sum(self.pca[t].k for t in self.input_terms(BEAM)) + extra
         core_args = dict(layer_norm=bool(args.get("layer_norm", False)),
                          global_latent=global_latent_checked(args.get("global_latent", 0)),
                          activation=activation_checked(args.get("activation", "relu")))
@@ -218,6 +219,12 @@ class Simulator(nn.Module):
                                         **core_args)
 
     # ------------------------------------------------------------------------------------------- features
+    def input_terms(self, block: Block) -> tuple[str, ...]:
+        """The terms of a block the network sees: geometry, stress and bc, or without stress_input no stress (the
+        stress stays in the state and in the loss, predicted but not read back)."""
+        kinds = ("geometry", "stress", "bc") if self.args.get("stress_input", True) else ("geometry", "bc")
+        return tuple(f"{block.name}_{kind}" for kind in kinds)
+
     def frames(self, joint_state, beam_state, static: Static):
         """Block frames [..., J, 3, 3], [..., B, 3, 3] (frame local: each block's own; fixed: its design's) or
         (None, None) (frame global)."""
@@ -293,8 +300,8 @@ class Simulator(nn.Module):
             R = self.frames(joint_state, beam_state, static)
         z = self.coefficients(joint_state, beam_state, static, R)
         lead = joint_state.shape[:-2]
-        parts_j = [z[k].expand(*lead, *z[k].shape[-2:]) for k in TERMS[:3]]
-        parts_b = [z[k].expand(*lead, *z[k].shape[-2:]) for k in TERMS[3:]]
+        parts_j = [z[k].expand(*lead, *z[k].shape[-2:]) for k in self.input_terms(JOINT)]
+        parts_b = [z[k].expand(*lead, *z[k].shape[-2:]) for k in self.input_terms(BEAM)]
         if self.args.get("time_input", True):
             t = (t if isinstance(t, torch.Tensor) else torch.tensor(t)).to(joint_state.dtype)
             t = t.expand(lead).reshape(*lead, 1, 1)

@@ -424,3 +424,25 @@ def test_moments_merged_block_by_block_are_the_moments_of_all_rows():
         np.testing.assert_allclose(m.mean, x.mean(axis=0), rtol=1e-12, atol=1e-9)
         np.testing.assert_allclose(m.cov, np.cov(x.T, bias=True), rtol=1e-9, atol=1e-9)
         np.testing.assert_allclose(m.std, x.std(axis=0), rtol=1e-9)
+
+
+@pytest.mark.parametrize("stress_input", [True, False])
+def test_without_stress_input_the_update_does_not_read_the_stress(features, stress_input):
+    data = GraphSet.build(features[:2])
+    model = Simulator.fit({"core": "double_gn", "latent": 8, "widths": [16, 8], "time_input": True,
+                           "global_latent": 4, "stress_input": stress_input},
+                          data.joint_state, data.beam_state, data.static)
+    joints, beams, _ = model.encode(data.joint_state[:3], data.beam_state[:3], data.static, data.t[:3])
+    stress_k = (model.pca["joint_stress"].k, model.pca["beam_stress"].k)
+    full = sum(model.pca[t].k for t in TERMS[:3]) + 1, sum(model.pca[t].k for t in TERMS[3:]) + 1
+    assert (joints.shape[-1], beams.shape[-1]) == (full if stress_input else
+                                                   (full[0] - stress_k[0], full[1] - stress_k[1]))
+    js, bs = data.joint_state[:3].clone(), data.beam_state[:3].clone()
+    js[..., JOINT.stress_slice] *= 3.0  # another stress field, the same geometry
+    bs[..., BEAM.stress_slice] *= 3.0
+    d1 = model(data.joint_state[:3], data.beam_state[:3], data.static, data.t[:3])
+    d2 = model(js, bs, data.static, data.t[:3])
+    same = torch.allclose(d1[0], d2[0], atol=1e-6) and torch.allclose(d1[1], d2[1], atol=1e-6)
+    assert same != stress_input  # read back only with stress_input
+    j, b = model.step(data.joint_state[:3], data.beam_state[:3], data.static, data.t[:3])
+    assert not torch.allclose(j[..., JOINT.stress_slice], data.joint_state[:3][..., JOINT.stress_slice])  # predicted
