@@ -108,6 +108,8 @@ def main(argv: list[str] | None = None) -> int:
     action.add_argument("--check", metavar="CSV", help="compare these episodes with the fingerprints in CSV")
     parser.add_argument("--tol-mm", type=float, default=TOL_MM, help=f"tolerance of the numbers (mm; {TOL_MM})")
     args = parser.parse_args(argv)
+    if not (args.tol_mm >= 0 and math.isfinite(args.tol_mm)):
+        parser.error(f"--tol-mm {args.tol_mm}: must be a finite number >= 0 (mm)")
     missing = [p for p in args.paths if not Path(p).exists()]
     if missing:
         parser.error(f"paths {missing}: not found")

@@ -75,6 +75,8 @@ def test_bad_inputs_are_named(data_dir, tmp_path):
         differences({}, [], tol_mm=-1.0)
     with pytest.raises(SystemExit):
         main([str(tmp_path / "nowhere"), "--check", str(bad)])
+    with pytest.raises(SystemExit):
+        main([str(data_dir), "--check", str(bad), "--tol-mm", "-0.1"])
     (tmp_path / "empty").mkdir()
     with pytest.raises(SystemExit):
         main([str(tmp_path / "empty"), "--check", str(bad)])
