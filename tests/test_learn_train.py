@@ -573,6 +573,20 @@ def test_the_memorisation_probe_is_the_reference_on_26_designs_trained_as_probed
     assert probe["patience"] > probe["epochs"]
 
 
+def test_the_medium_experiment_is_the_reference_on_the_first_260_episodes_in_one_session():
+    """conf/experiment/medium.yaml: the reference recipe (model, augmentation, split, drop at 65 %) with only the scale
+    changed, so that two arms fit in one session: every training design of the first 260 episodes, 18 epochs, bf16.
+    Every pinned held-out design lies below episode 260, so it is evaluated on the same designs as the reference."""
+    medium = OmegaConf.to_container(cfg_for("train", ["+experiment=medium"]))
+    reference = OmegaConf.to_container(cfg_for("train", ["+experiment=reference"]))
+    changed = {k for k in reference if medium[k] != reference[k]}
+    assert changed == {"run_dir", "train_designs", "epochs", "precision", "time_limit_min"}
+    assert medium["train_designs"] is None and medium["epochs"] == 18
+    pinned = OmegaConf.load(REPO / medium["split_from"])
+    indices = [int(re.search(r"(\d+)", name).group(1)) for name in [*pinned.val, *pinned.test]]
+    assert len(indices) == 52 and max(indices) < 260
+
+
 def test_bf16_training_rounds_the_network_not_the_states_and_a_bad_precision_is_refused(trained, data_dir, tmp_path):
     """precision=bf16 autocasts the loss's forward pass: the network's matrix products are bfloat16 (8 bits of
     mantissa), but the states it adds dG to stay float32, and so does the loss, which moves by well under 1 % over
