@@ -17,13 +17,23 @@ def activation_checked(name) -> str:
     return name
 
 
-def mlp(n_in: int, widths: list[int], n_out: int, layer_norm: bool = False, activation: str = "relu") -> nn.Sequential:
-    """MLP n_in -> widths... -> n_out with `activation` (ACTIVATIONS) after every hidden layer (linear output, then
-    LayerNorm if asked); pyramid-shaped when widths decrease."""
+def dropout_checked(p) -> float:
+    """model.dropout: the probability of zeroing a hidden unit while training, in [0, 1)."""
+    if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0.0 <= float(p) < 1.0:
+        raise ValueError(f"model.dropout={p!r}: must be a number in [0, 1)")
+    return float(p)
+
+
+def mlp(n_in: int, widths: list[int], n_out: int, layer_norm: bool = False, activation: str = "relu",
+        dropout: float = 0.0) -> nn.Sequential:
+    """MLP n_in -> widths... -> n_out with `activation` (ACTIVATIONS) after every hidden layer, then Dropout(dropout)
+    when > 0 (training only: model.eval() turns it off) (linear output, then LayerNorm if asked); pyramid-shaped when
+    widths decrease."""
     nonlinearity = ACTIVATIONS[activation_checked(activation)]
+    p = dropout_checked(dropout)
     layers: list[nn.Module] = []
     for w in widths:
-        layers += [nn.Linear(n_in, w), nonlinearity()]
+        layers += [nn.Linear(n_in, w), nonlinearity()] + ([nn.Dropout(p)] if p > 0 else [])
         n_in = w
     layers.append(nn.Linear(n_in, n_out))
     if layer_norm:
@@ -75,18 +85,18 @@ class GNBlock(nn.Module):
 
     def __init__(self, joint_in: int, beam_in: int, edge_in: int, latent: int, widths: list[int],
                  joint_out: int, beam_out: int, layer_norm: bool = False, latent_out: bool = False,
-                 global_latent: int = 0, activation: str = "relu"):
+                 global_latent: int = 0, activation: str = "relu", dropout: float = 0.0):
         """layer_norm: LayerNorm after the interaction MLPs, and after the update MLPs too when their output is a
-        latent graph (latent_out) rather than the final update; activation: the MLPs' nonlinearity (mlp)."""
+        latent graph (latent_out) rather than the final update; activation, dropout: the MLPs' (mlp)."""
         super().__init__()
         self.pair_split = [beam_in, joint_in, joint_in, edge_in]  # X_beam | X_sender | X_receiver | X_edge
         pair = sum(self.pair_split)
-        a = activation
-        self.joint_interaction = mlp(pair, widths, latent, layer_norm, a)
-        self.beam_interaction = mlp(pair, widths, latent, layer_norm, a)
-        self.design = mlp(2 * latent, widths, global_latent, layer_norm, a) if global_latent > 0 else None
-        self.beam_update = mlp(beam_in + latent + global_latent, widths, beam_out, layer_norm and latent_out, a)
-        self.joint_update = mlp(joint_in + latent + global_latent, widths, joint_out, layer_norm and latent_out, a)
+        a, p = activation, dropout
+        self.joint_interaction = mlp(pair, widths, latent, layer_norm, a, p)
+        self.beam_interaction = mlp(pair, widths, latent, layer_norm, a, p)
+        self.design = mlp(2 * latent, widths, global_latent, layer_norm, a, p) if global_latent > 0 else None
+        self.beam_update = mlp(beam_in + latent + global_latent, widths, beam_out, layer_norm and latent_out, a, p)
+        self.joint_update = mlp(joint_in + latent + global_latent, widths, joint_out, layer_norm and latent_out, a, p)
 
     def interactions(self, joints: torch.Tensor, beams: torch.Tensor, edges: torch.Tensor,
                      g: GraphIndex) -> tuple[torch.Tensor, torch.Tensor]:
@@ -125,13 +135,13 @@ class ProcessorBlock(nn.Module):
     GNBlock."""
 
     def __init__(self, latent: int, widths: list[int], layer_norm: bool = True, global_latent: int = 0,
-                 activation: str = "relu"):
+                 activation: str = "relu", dropout: float = 0.0):
         super().__init__()
-        a = activation
-        self.edge = mlp(4 * latent, widths, latent, layer_norm, a)
-        self.design = mlp(2 * latent, widths, global_latent, layer_norm, a) if global_latent > 0 else None
-        self.joint = mlp(2 * latent + global_latent, widths, latent, layer_norm, a)
-        self.beam = mlp(2 * latent + global_latent, widths, latent, layer_norm, a)
+        a, p = activation, dropout
+        self.edge = mlp(4 * latent, widths, latent, layer_norm, a, p)
+        self.design = mlp(2 * latent, widths, global_latent, layer_norm, a, p) if global_latent > 0 else None
+        self.joint = mlp(2 * latent + global_latent, widths, latent, layer_norm, a, p)
+        self.beam = mlp(2 * latent + global_latent, widths, latent, layer_norm, a, p)
 
     def forward(self, joints: torch.Tensor, beams: torch.Tensor, edges: torch.Tensor,
                 g: GraphIndex) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -9,7 +9,7 @@ import torch
 from torch import nn
 
 from learn import frames, kinematics
-from learn.gn import GNBlock, ProcessorBlock, activation_checked, mlp
+from learn.gn import GNBlock, ProcessorBlock, activation_checked, dropout_checked, mlp
 from learn.graph import BEAM, JOINT, Block, GraphIndex
 from learn.pca import Moments, Normalizer, TermPCA
 from learn.symmetry import LATTICE_QUARTER_TURNS
@@ -24,10 +24,10 @@ class SingleGN(nn.Module):
     """One GN block from the input graph straight to the update dG."""
 
     def __init__(self, joint_in, beam_in, edge_in, joint_out, beam_out, latent: int, widths: list[int],
-                 layer_norm: bool = False, global_latent: int = 0, activation: str = "relu"):
+                 layer_norm: bool = False, global_latent: int = 0, activation: str = "relu", dropout: float = 0.0):
         super().__init__()
         self.gn = GNBlock(joint_in, beam_in, edge_in, latent, widths, joint_out, beam_out, layer_norm,
-                          global_latent=global_latent, activation=activation)
+                          global_latent=global_latent, activation=activation, dropout=dropout)
 
     def forward(self, joints, beams, edges, g: GraphIndex):
         return self.gn(joints, beams, edges, g)
@@ -38,10 +38,11 @@ class DoubleGN(nn.Module):
     the chain continues: GN_k sees cat(G, G'_{k-1}), so information travels n_blocks hops per step."""
 
     def __init__(self, joint_in, beam_in, edge_in, joint_out, beam_out, latent: int, widths: list[int],
-                 layer_norm: bool = False, n_blocks: int = 2, global_latent: int = 0, activation: str = "relu"):
+                 layer_norm: bool = False, n_blocks: int = 2, global_latent: int = 0, activation: str = "relu",
+                 dropout: float = 0.0):
         super().__init__()
         assert n_blocks >= 2, "a double GN has at least two blocks"
-        shared = dict(global_latent=global_latent, activation=activation)
+        shared = dict(global_latent=global_latent, activation=activation, dropout=dropout)
         first = GNBlock(joint_in, beam_in, edge_in, latent, widths, latent, latent, layer_norm, latent_out=True,
                         **shared)
         middle = [GNBlock(joint_in + latent, beam_in + latent, edge_in, latent, widths, latent, latent, layer_norm,
@@ -65,16 +66,17 @@ class EncodeProcessDecode(nn.Module):
     operations to every step, which is what a one-design rollout's time follows (docs/learned_simulator.md, session 8)."""
 
     def __init__(self, joint_in, beam_in, edge_in, joint_out, beam_out, latent: int, widths: list[int],
-                 layer_norm: bool = True, n_blocks: int = 6, global_latent: int = 0, activation: str = "relu"):
+                 layer_norm: bool = True, n_blocks: int = 6, global_latent: int = 0, activation: str = "relu",
+                 dropout: float = 0.0):
         super().__init__()
-        a = activation
-        self.encode_joint = mlp(joint_in, widths, latent, layer_norm, a)
-        self.encode_beam = mlp(beam_in, widths, latent, layer_norm, a)
-        self.encode_edge = mlp(edge_in, widths, latent, layer_norm, a)
-        self.blocks = nn.ModuleList([ProcessorBlock(latent, widths, layer_norm, global_latent, a)
+        a, p = activation, dropout
+        self.encode_joint = mlp(joint_in, widths, latent, layer_norm, a, p)
+        self.encode_beam = mlp(beam_in, widths, latent, layer_norm, a, p)
+        self.encode_edge = mlp(edge_in, widths, latent, layer_norm, a, p)
+        self.blocks = nn.ModuleList([ProcessorBlock(latent, widths, layer_norm, global_latent, a, p)
                                      for _ in range(n_blocks)])
-        self.decode_joint = mlp(latent, widths, joint_out, activation=a)
-        self.decode_beam = mlp(latent, widths, beam_out, activation=a)
+        self.decode_joint = mlp(latent, widths, joint_out, activation=a, dropout=p)
+        self.decode_beam = mlp(latent, widths, beam_out, activation=a, dropout=p)
 
     def forward(self, joints, beams, edges, g: GraphIndex):
         hj, hb, he = self.encode_joint(joints), self.encode_beam(beams), self.encode_edge(edges)
@@ -174,6 +176,8 @@ class Simulator(nn.Module):
           global_latent (int >= 0: a design-wide vector per GN block, graph_nets' global; 0 = the thesis),
           activation (the MLPs' hidden nonlinearity: relu, the thesis', and what args without the key get | silu,
           conf/model's default since session 9 | gelu | tanh),
+          dropout (float in [0, 1): Dropout after every hidden layer of every MLP while training; 0, no layer, is what
+          args without the key get),
           frame ("global": features translated to each block's origin, as in the thesis; "local": also rotated
           into each block's own frame, updates predicted there, gravity given per block; implies a current
           bc position; "fixed": also rotated about z into the design's frame, the fixed joint's in-plane axes
@@ -208,7 +212,8 @@ class Simulator(nn.Module):
         beam_in = sum(self.pca[t].k for t in self.input_terms(BEAM)) + extra
         core_args = dict(layer_norm=bool(args.get("layer_norm", False)),
                          global_latent=global_latent_checked(args.get("global_latent", 0)),
-                         activation=activation_checked(args.get("activation", "relu")))
+                         activation=activation_checked(args.get("activation", "relu")),
+                         dropout=dropout_checked(args.get("dropout", 0.0)))
         if args["core"] not in CORES:
             raise ValueError(f"model.core={args['core']!r}: must be one of {sorted(CORES)}")
         if args["core"] in ("double_gn", "epd"):

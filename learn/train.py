@@ -18,6 +18,7 @@ from learn import checkpoint
 from learn.conditions import envelope
 from learn.dataset import (GraphSet, TurnedSet, augment, augment_angles, episode_paths, extend_split, load_features,
                            split_names)
+from learn.gn import dropout_checked
 from learn.metrics import multistep_loss, rollout_errors
 from learn.model import (Simulator, integer_in, rollout_lattice_turns_checked, rollout_rotations_checked,
                          term_retention)
@@ -62,6 +63,7 @@ def model_args(cfg_model: DictConfig) -> dict:
             "stress_input": bool(cfg_model.get("stress_input", True)), "n_blocks": int(cfg_model.get("n_blocks", 2)),
             "global_latent": int(cfg_model.get("global_latent", 0)),
             "activation": str(cfg_model.get("activation", "relu")),
+            "dropout": dropout_checked(cfg_model.get("dropout", 0.0)),
             "pin_fixed_joint": bool(cfg_model.get("pin_fixed_joint", False)),
             "frame": str(cfg_model.get("frame", "global")), "update": str(cfg_model.get("update", "additive")),
             "rollout_rotations": rollout_rotations_checked(cfg_model.get("rollout_rotations", 1),

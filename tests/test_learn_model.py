@@ -446,3 +446,34 @@ def test_without_stress_input_the_update_does_not_read_the_stress(features, stre
     assert same != stress_input  # read back only with stress_input
     j, b = model.step(data.joint_state[:3], data.beam_state[:3], data.static, data.t[:3])
     assert not torch.allclose(j[..., JOINT.stress_slice], data.joint_state[:3][..., JOINT.stress_slice])  # predicted
+
+
+def test_dropout_acts_while_training_only_and_changes_nothing_when_off(features):
+    """model.dropout > 0: two training-mode steps of the same input differ (units are dropped) and in eval mode the
+    step is the same network without dropout and the traced rollout gives the eager numbers; dropout 0 adds no layer (checkpoints
+    written before the option load unchanged); values outside [0, 1) are refused naming the field."""
+    from learn.evaluate import eager_rollout
+    from learn.rollout import compile_rollout, graph_inputs
+    data = GraphSet.build(features[:2])
+    args = {"core": "double_gn", "latent": 8, "widths": [16, 8], "time_input": True, "global_latent": 4,
+            "activation": "silu"}
+    torch.manual_seed(0)
+    off = Simulator.fit(args, data.joint_state, data.beam_state, data.static)
+    torch.manual_seed(0)
+    on = Simulator.fit({**args, "dropout": 0.3}, data.joint_state, data.beam_state, data.static)
+    assert not any(isinstance(m, torch.nn.Dropout) for m in off.modules())
+    assert sum(isinstance(m, torch.nn.Dropout) for m in on.modules()) > 0
+    x = (data.joint_state[:2], data.beam_state[:2], data.static, data.t[:2])
+    on.train()
+    with torch.no_grad():
+        a, b = on.step(*x)[0], on.step(*x)[0]
+    assert not torch.allclose(a, b)
+    on.eval(), off.eval()
+    with torch.no_grad():  # the same seed draws the same weights (Dropout draws none): eval mode is the plain network
+        a, b = on.step(*x)[0], on.step(*x)[0]
+        assert torch.equal(a, b) and torch.allclose(a, off.step(*x)[0], atol=1e-6)
+        got = compile_rollout(on, features[1])(*graph_inputs(features[1]))[2]
+        assert torch.allclose(got, eager_rollout(on, features[1])(), atol=1e-3)
+    for bad in (-0.1, 1.0, "0.2", True):
+        with pytest.raises(ValueError, match="model.dropout"):
+            Simulator.fit({**args, "dropout": bad}, data.joint_state, data.beam_state, data.static)
