@@ -26,9 +26,9 @@ def dropout_checked(p) -> float:
 
 def mlp(n_in: int, widths: list[int], n_out: int, layer_norm: bool = False, activation: str = "relu",
         dropout: float = 0.0) -> nn.Sequential:
-    """MLP n_in -> widths... -> n_out with `activation` (ACTIVATIONS) after every hidden layer, then Dropout(dropout)
-    when > 0 (training only: model.eval() turns it off) (linear output, then LayerNorm if asked); pyramid-shaped when
-    widths decrease."""
+    """MLP n_in -> widths... -> n_out with `activation` (ACTIVATIONS) after every hidden layer, followed by
+    Dropout(dropout) when dropout > 0 (active in training mode only); linear output, then LayerNorm if asked;
+    pyramid-shaped when widths decrease."""
     nonlinearity = ACTIVATIONS[activation_checked(activation)]
     p = dropout_checked(dropout)
     layers: list[nn.Module] = []

@@ -449,9 +449,9 @@ def test_without_stress_input_the_update_does_not_read_the_stress(features, stre
 
 
 def test_dropout_acts_while_training_only_and_changes_nothing_when_off(features):
-    """model.dropout > 0: two training-mode steps of the same input differ (units are dropped) and in eval mode the
-    step is the same network without dropout and the traced rollout gives the eager numbers; dropout 0 adds no layer (checkpoints
-    written before the option load unchanged); values outside [0, 1) are refused naming the field."""
+    """model.dropout > 0: two training-mode steps of the same input differ (units are dropped); in eval mode the step
+    is the same network without dropout and the traced rollout gives the eager numbers; dropout 0 adds no layer
+    (checkpoints written before the option load unchanged); values outside [0, 1) are refused naming the field."""
     from learn.evaluate import eager_rollout
     from learn.rollout import compile_rollout, graph_inputs
     data = GraphSet.build(features[:2])
