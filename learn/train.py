@@ -100,6 +100,20 @@ def learning_rate(cfg: DictConfig, epoch: int) -> float:
     return base * (factor if drop else 1.0)
 
 
+def weight_decay_checked(decay) -> float:
+    if isinstance(decay, bool) or not isinstance(decay, (int, float)) or not 0.0 <= decay < 1.0:
+        raise ValueError(f"optim.weight_decay={decay!r}: must be a number in [0, 1) (0 = off)")
+    return float(decay)
+
+
+def optimiser(model: Simulator, optim: DictConfig) -> torch.optim.Adam:
+    """Adam; with optim.decoupled_weight_decay (AdamW, Loshchilov & Hutter 2019) every weight shrinks by
+    lr * weight_decay per step apart from the gradient's moments; without it the decay is an L2 term added to the
+    gradient (and so divided by Adam's running scale). Configs written before the option read as L2."""
+    return torch.optim.Adam(model.parameters(), lr=optim.lr, weight_decay=weight_decay_checked(optim.weight_decay),
+                            decoupled_weight_decay=bool(optim.get("decoupled_weight_decay", False)))
+
+
 def ema_decay_checked(decay) -> float:
     if isinstance(decay, bool) or not isinstance(decay, (int, float)) or not 0.0 <= decay < 1.0:
         raise ValueError(f"optim.ema_decay={decay!r}: must be a number in [0, 1) (0 = off)")
@@ -241,6 +255,7 @@ def train(cfg: DictConfig) -> dict:
 def _train(cfg: DictConfig, run_dir: Path) -> dict:
     term_retention(retention_of(cfg))  # a bad value stops here, before any data is read
     ema_decay_checked(cfg.optim.get("ema_decay", 0.0))
+    weight_decay_checked(cfg.optim.weight_decay)
     schedule_checked(cfg.optim.get("schedule", "step"))
     precision_checked(cfg.get("precision", "fp32"))
     gradient_carry(cfg)
@@ -289,7 +304,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
     floor = max(float(input_floor(model, f).max() / f.design_size) for f in val_set.items)
     log.info("input floor: the PCA'd geometry inputs rebuild the validation designs' points within %.3g %% of the "
              "design size", 100 * floor)
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.optim.lr, weight_decay=cfg.optim.weight_decay)
+    opt = optimiser(model, cfg.optim)
     average = weight_average(model, cfg.optim.get("ema_decay", 0.0))
     if resumed and "trained_state_dict" in resumed:  # state_dict holds the average; the optimiser's weights apart
         model.load_state_dict(resumed["trained_state_dict"])

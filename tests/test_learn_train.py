@@ -630,3 +630,24 @@ def test_a_timing_on_a_busy_machine_is_flagged_in_the_report():
               "threads": 1, "model": {}, "designs": [], "load_average": 3.1, "cpus": 2, "timing_busy": True}
     assert "busy machine (1-minute load 3.1 on 2 CPUs)" in markdown(report)
     assert "busy machine" not in markdown({**report, "timing_busy": False})
+
+
+def test_decoupled_weight_decay_shrinks_each_weight_by_lr_times_the_decay_and_a_bad_value_is_refused(data_dir, tmp_path):
+    from learn.train import optimiser
+    lin = torch.nn.Linear(3, 2)
+    for decoupled, expected in ((True, 1 - 1e-2 * 0.1), (False, None)):
+        with torch.no_grad():
+            lin.weight.fill_(2.0), lin.bias.fill_(-1.0)
+        opt = optimiser(lin, OmegaConf.create({"lr": 1e-2, "weight_decay": 0.1, "decoupled_weight_decay": decoupled}))
+        lin.weight.grad, lin.bias.grad = torch.zeros_like(lin.weight), torch.zeros_like(lin.bias)
+        opt.step()
+        if decoupled:  # AdamW: no gradient, so the only change is w <- w (1 - lr wd)
+            assert torch.allclose(lin.weight, torch.full_like(lin.weight, 2.0 * expected))
+            assert torch.allclose(lin.bias, torch.full_like(lin.bias, -1.0 * expected))
+        else:  # L2: the decay is the gradient, normalised by Adam: a first step of lr whatever the decay
+            assert torch.allclose(lin.weight, torch.full_like(lin.weight, 2.0 - 1e-2))
+    old = optimiser(lin, OmegaConf.create({"lr": 1e-3, "weight_decay": 0.0}))  # a config from before the option
+    assert old.param_groups[0]["decoupled_weight_decay"] is False
+    with pytest.raises(ValueError, match=re.escape("optim.weight_decay=-0.1: must be a number in [0, 1)")):
+        train(cfg_for("train", tiny(data_dir, tmp_path / "bad", "epochs=1", "optim.weight_decay=-0.1")))
+    assert not (tmp_path / "bad" / "last.pt").exists()
