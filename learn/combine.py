@@ -22,7 +22,8 @@ from learn.evaluate import design_statistics, finite_or_null, markdown
 log = logging.getLogger(__name__)
 WEIGHTED = ("rollout_ms_per_design", "rollout_ms_per_design_eager", "rollout_ms_per_design_batched",
             "fea_s_per_episode")
-SAME = ("checkpoint", "model", "threads", "steps")
+SAME = ("checkpoint", "model", "threads", "steps", "welded")
+ABSENT = {"welded": False}  # what a report written before the key was added measured
 
 
 def read_report(path: str | Path) -> dict:
@@ -38,7 +39,7 @@ def combine(reports: list[dict]) -> dict:
     if len(reports) < 2:
         raise ValueError(f"reports: {len(reports)} given; pooling needs at least 2")
     for key in SAME:
-        values = {json.dumps(r.get(key), sort_keys=True) for r in reports}
+        values = {json.dumps(r.get(key, ABSENT.get(key)), sort_keys=True) for r in reports}
         if len(values) > 1:
             raise ValueError(f"reports differ in {key!r} ({sorted(values)}): pool only one model's reports")
     designs = [{**d, "data_dir": r["data_dir"]} for r in reports for d in r["designs"]]
@@ -53,7 +54,7 @@ def combine(reports: list[dict]) -> dict:
         **design_statistics(designs),
         **{key: mean(key) for key in WEIGHTED},
         "n_invalid": int(sum(not d["valid"] for d in designs)),
-        **{key: reports[0].get(key) for key in SAME},
+        **{key: reports[0].get(key, ABSENT.get(key)) for key in SAME},
         "split": " + ".join(f"{r['data_dir']}:{r['split']}" for r in reports),
         "data_dir": ", ".join(r["data_dir"] for r in reports),
         "n_parameters": reports[0].get("n_parameters"),

@@ -63,8 +63,10 @@ def compare(reports: list[dict], labels: list[str]) -> dict:
                              f"{only_base[:3]}; extra {len(only_this)}: {only_this[:3]}); compare reports over the "
                              "same designs")
     arrays = [np.array([e[k] for k in keys]) for e in errs]
-    rows = [{"label": labels[0], **summary(arrays[0])}]
-    rows += [{"label": lab, **summary(a), **paired(arrays[0], a)} for lab, a in zip(labels[1:], arrays[1:])]
+    welded = [bool(r.get("welded", False)) for r in reports]  # one position per FEA node (learn.evaluate weld=true)
+    rows = [{"label": labels[0], "welded": welded[0], **summary(arrays[0])}]
+    rows += [{"label": lab, "welded": w, **summary(a), **paired(arrays[0], a)}
+             for lab, w, a in zip(labels[1:], welded[1:], arrays[1:])]
     worst = [{"data_dir": keys[i][0], "name": keys[i][1], "errors": [float(a[i]) for a in arrays]}
              for i in np.argsort(-arrays[0])[:5]]
     return {"base": labels[0], "n_designs": len(keys), "rows": rows, "base_worst_designs": worst,
@@ -148,7 +150,8 @@ def markdown(result: dict) -> str:
     for r in result["rows"]:
         vs = (f"{r['better_on']} of {r['n']} (worse on {r['worse_on']}) | x{r['median_ratio']:.3f}"
               if "better_on" in r else "(base) | ")
-        lines.append(f"| {r['label']} | {pct(r['median'])} | {pct(r['p95'])} | {pct(r['worst'])} | {pct(r['mean'])} "
+        label = r["label"] + (" (welded)" if r.get("welded") else "")
+        lines.append(f"| {label} | {pct(r['median'])} | {pct(r['p95'])} | {pct(r['worst'])} | {pct(r['mean'])} "
                      f"| {vs} |")
     lines += ["", "The base's worst designs:", "", "| design | " + " | ".join(r["label"] for r in result["rows"]) + " |",
               "|---|" + "---|" * len(result["rows"])]

@@ -222,6 +222,19 @@ def shared_point_pairs(point_nodes: np.ndarray) -> np.ndarray:
     return np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
 
 
+def welded(points: np.ndarray, point_nodes: np.ndarray) -> np.ndarray:
+    """points [..., P, 3] with every group of points that stand for one FEA node (a beam's end face and its joint's
+    face) moved to the group's mean: one position per node, a closed solid instead of blocks that each carry their
+    own copy of the interface. The error of the mean is at most the larger of the two (it lies on their segment)."""
+    nodes, group = np.unique(point_nodes, return_inverse=True)
+    count = np.bincount(group, minlength=len(nodes)).astype(points.dtype)
+    moved = np.moveaxis(points, -2, 0)  # [P, ..., 3]
+    total = np.zeros((len(nodes), *moved.shape[1:]), dtype=points.dtype)
+    np.add.at(total, group, moved)
+    mean = total / count.reshape(-1, *([1] * (moved.ndim - 1)))
+    return np.moveaxis(mean[group], 0, -2)
+
+
 def _corner_quad_point(cells: np.ndarray, nodes: np.ndarray, cell_nodes: np.ndarray,
                        quad_points: np.ndarray) -> np.ndarray:
     """Quadrature point index [n] of each cell nearest to the given vertex node of that cell."""

@@ -92,16 +92,18 @@ def predict(cfg: DictConfig) -> dict:
     episode = Path(cfg.episode)
     f = extract(read_episode(episode), name=episode.name)
     start = time.perf_counter()
-    r = rollout(model, f, steps=steps)
+    raw = rollout(model, f, steps=steps)
     rollout_ms = 1e3 * (time.perf_counter() - start)
-    verdict = check(model, r, **OmegaConf.to_container(cfg.validity), envelope=ckpt.get("envelope"))
+    verdict = check(model, raw, **OmegaConf.to_container(cfg.validity), envelope=ckpt.get("envelope"))
+    weld = bool(cfg.get("weld", True))
+    r = raw.welded() if weld else raw  # the answer written and measured; the check read the blocks as predicted
     out_dir = Path(cfg.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     result = {
         "episode": str(episode), "checkpoint": sources[0] if len(sources) == 1 else sources, "steps": steps,
         "t": r.t.tolist(),
         "design_size_mm": f.design_size, "valid": verdict.valid, "validity": verdict.as_dict(),
-        "rollout_ms": rollout_ms, "threads": int(cfg.threads),
+        "rollout_ms": rollout_ms, "threads": int(cfg.threads), "welded": weld,
         "timing": "rollout_ms: one eager rollout (initial graph -> rebuilt points of every frame), first call; "
                   "learn.evaluate measures the compiled steady state",
         "view": str(write_view(r, out_dir / "prediction.view.xdmf")),

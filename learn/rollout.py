@@ -2,13 +2,13 @@
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
 
 from learn.ensemble import Ensemble, members_of, stack_mean
-from learn.features import EpisodeFeatures, beams_along_i, extract, rebuild_all_points
+from learn.features import EpisodeFeatures, beams_along_i, extract, rebuild_all_points, welded
 from learn.graph import BEAM, JOINT, GraphIndex
 from learn.model import Simulator, Static, static_from
 from learn.symmetry import (LATTICE_QUARTER_TURNS, lattice_matrices, rotation_angles, rotation_z, state_mirror,
@@ -181,6 +181,13 @@ class Rollout:
     def local_points(self) -> np.ndarray:
         """[F, P, 3] points in the translated frame (comparable to features.fea_points)."""
         return self.points - self.origin
+
+    def welded(self) -> Rollout:
+        """The same rollout with one position per FEA node (learn.features.welded: a beam's end face and its joint's
+        face at their mean), ensemble members' points likewise: the answer as one solid. The validity check reads
+        the unwelded rollout, whose dislocation is what welding hides."""
+        members = None if self.member_points is None else welded(self.member_points, self.point_nodes)
+        return replace(self, points=welded(self.points, self.point_nodes), member_points=members)
 
 
 def as_features(source) -> EpisodeFeatures:

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from data_schema.testing import synthetic_episode
-from learn.features import (BEAM_POINTS, JOINT_POINTS, extract, rebuild_all_points, shared_point_pairs)
+from learn.features import BEAM_POINTS, JOINT_POINTS, extract, rebuild_all_points, shared_point_pairs, welded
 from learn.graph import BEAM, JOINT, Incidence, disjoint_union
 from learn.symmetry import rotate_stress, rotation_z, voigt_to_tensor
 
@@ -48,6 +48,29 @@ def test_features_shapes_and_points_rebuild_fea_nodes(episode):
     assert np.abs(pts - f.fea_points).max() < 0.02 * f.design_size
     # every beam end face shares its 4 corners and 2 edge middles with its joints (6 nodes per end)
     assert len(shared_point_pairs(f.point_nodes)) == B * 2 * 6
+
+
+def test_welding_puts_each_shared_node_at_the_mean_of_its_copies_and_leaves_the_rest(episode):
+    f = extract(episode, "ep")
+    pts = rebuild_all_points(f.joint_state.astype(float), f.beam_state.astype(float))  # [F, P, 3]
+    pairs = shared_point_pairs(f.point_nodes)
+    rng = np.random.default_rng(1)
+    torn = pts + rng.normal(scale=2.0, size=pts.shape)  # every block's copy of an interface off by its own error
+    w = welded(torn, f.point_nodes)
+    assert w.shape == torn.shape
+    assert np.allclose(w[:, pairs[:, 0]], w[:, pairs[:, 1]])  # one position per node
+    err = lambda p: np.linalg.norm(p - pts, axis=-1)  # noqa: E731
+    sizes = []
+    for node in np.unique(f.point_nodes[pairs.ravel()]):  # 2 copies on a face, 3 where two beams meet a joint corner
+        copies = np.flatnonzero(f.point_nodes == node)
+        sizes.append(len(copies))
+        assert np.allclose(w[:, copies], torn[:, copies].mean(axis=1, keepdims=True))
+        assert (err(w)[:, copies[0]] <= err(torn)[:, copies].max(axis=1) + 1e-9).all()  # within the copies' hull
+    assert set(sizes) >= {2}
+    alone = np.setdiff1d(np.arange(len(f.point_nodes)), pairs.ravel())
+    assert len(alone) > 0 and np.array_equal(w[:, alone], torn[:, alone])
+    assert np.allclose(welded(w, f.point_nodes), w)  # welding a welded answer changes nothing
+    assert np.allclose(welded(torn[None], f.point_nodes)[0], w)  # any leading axes (ensemble members)
 
 
 def test_stress_rotation_is_a_tensor_rotation():

@@ -156,6 +156,24 @@ def test_validity_passes_a_clean_rollout_and_flags_a_corrupted_one(trained, data
     assert not wild_verdict.valid and "training feature range" in " ".join(wild_verdict.reasons)
 
 
+def test_a_welded_evaluation_is_never_worse_and_keeps_the_validity_of_the_blocks_as_predicted(trained, tmp_path):
+    run, _ = trained
+    args = [f"checkpoint={run / 'best.pt'}", "timing_repeats=1", "plots=false"]
+    raw = evaluate(cfg_for("evaluate", [*args, f"out_dir={tmp_path / 'raw'}"]))
+    one = evaluate(cfg_for("evaluate", [*args, f"out_dir={tmp_path / 'welded'}", "weld=true"]))
+    assert raw["welded"] is False and one["welded"] is True
+    for a, b in zip(raw["designs"], one["designs"]):  # a node's mean is no farther than the farther of its copies
+        assert a["name"] == b["name"] and b["max_rel_error"] <= a["max_rel_error"] + 1e-12
+        assert b["mean_rel_error"] <= a["mean_rel_error"] + 1e-12  # |mean - x| <= mean |copy - x|, node by node
+        assert a["validity"] == b["validity"]  # the dislocation welding hides is still what the check reads
+    assert any(b["mean_rel_error"] < a["mean_rel_error"] - 1e-6 for a, b in zip(raw["designs"], one["designs"]))
+    from learn.combine import combine
+    from learn.compare import compare, markdown
+    assert "| welded (welded) |" in markdown(compare([raw, one], ["raw", "welded"]))
+    with pytest.raises(ValueError, match="reports differ in 'welded'"):
+        combine([raw, one])
+
+
 def test_evaluate_writes_the_report(trained, tmp_path):
     run, _ = trained
     report = evaluate(cfg_for("evaluate", [f"checkpoint={run / 'best.pt'}", f"out_dir={tmp_path}",

@@ -69,9 +69,15 @@ def test_predict_writes_view_verdict_and_error_like_the_rollout(trained, data_di
     name = ckpt["split"]["test"][0]
     base = [f"checkpoint={run_dir / 'best.pt'}", "threads=1"]
     full = predict(cfg_for("predict", base + [f"episode={data_dir / name}", f"out_dir={tmp_path / 'full'}"]))
-    want = rollout(checkpoint.model_from(ckpt), read_episode(data_dir / name))
+    raw = rollout(checkpoint.model_from(ckpt), read_episode(data_dir / name))
+    want = raw.welded()  # the answer is one solid by default (conf/predict.yaml weld)
     err = np.linalg.norm(want.local_points - want.features.fea_points, axis=-1)
-    assert full["max_rel_error"] == pytest.approx(err.max() / want.features.design_size, rel=1e-5)
+    assert full["welded"] and full["max_rel_error"] == pytest.approx(err.max() / want.features.design_size, rel=1e-5)
+    blocks = predict(cfg_for("predict", base + [f"episode={data_dir / name}", f"out_dir={tmp_path / 'blocks'}",
+                                                "weld=false", "plots=false"]))
+    raw_err = np.linalg.norm(raw.local_points - raw.features.fea_points, axis=-1)
+    assert blocks["max_rel_error"] == pytest.approx(raw_err.max() / raw.features.design_size, rel=1e-5)
+    assert blocks["validity"] == full["validity"]  # checked on the blocks as predicted either way
     assert json.loads((tmp_path / "full" / "prediction.json").read_text())["valid"] == full["valid"]
     assert (tmp_path / "full" / "prediction.png").stat().st_size > 0
     reader = meshio.xdmf.TimeSeriesReader(tmp_path / "full" / "prediction.view.xdmf")
