@@ -653,7 +653,7 @@ def test_a_timing_on_a_busy_machine_is_flagged_in_the_report():
     assert "busy machine" not in markdown({**report, "timing_busy": False})
 
 
-def test_decoupled_weight_decay_shrinks_each_weight_by_lr_times_the_decay_and_a_bad_value_is_refused(data_dir, tmp_path):
+def test_decoupled_weight_decay_shrinks_each_weight_by_lr_times_decay_and_a_bad_value_is_refused(data_dir, tmp_path):
     from learn.train import optimiser
     lin = torch.nn.Linear(3, 2)
     for decoupled, expected in ((True, 1 - 1e-2 * 0.1), (False, None)):
