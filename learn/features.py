@@ -225,7 +225,7 @@ def shared_point_pairs(point_nodes: np.ndarray) -> np.ndarray:
 def welded(points: np.ndarray, point_nodes: np.ndarray) -> np.ndarray:
     """points [..., P, 3] with every group of points that stand for one FEA node (a beam's end face and its joint's
     face) moved to the group's mean: one position per node, a closed solid instead of blocks that each carry their
-    own copy of the interface. The error of the mean is at most the larger of the two (it lies on their segment)."""
+    own copy of the interface. The mean's error is at most its farthest copy's (it lies in the copies' hull)."""
     nodes, group = np.unique(point_nodes, return_inverse=True)
     count = np.bincount(group, minlength=len(nodes)).astype(points.dtype)
     moved = np.moveaxis(points, -2, 0)  # [P, ..., 3]

@@ -100,10 +100,15 @@ def learning_rate(cfg: DictConfig, epoch: int) -> float:
     return base * (factor if drop else 1.0)
 
 
+def fraction_checked(value, name: str) -> float:
+    """A rate in [0, 1) (0 = off), or a ValueError naming the field."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value < 1.0:
+        raise ValueError(f"{name}={value!r}: must be a number in [0, 1) (0 = off)")
+    return float(value)
+
+
 def weight_decay_checked(decay) -> float:
-    if isinstance(decay, bool) or not isinstance(decay, (int, float)) or not 0.0 <= decay < 1.0:
-        raise ValueError(f"optim.weight_decay={decay!r}: must be a number in [0, 1) (0 = off)")
-    return float(decay)
+    return fraction_checked(decay, "optim.weight_decay")
 
 
 def optimiser(model: Simulator, optim: DictConfig) -> torch.optim.Adam:
@@ -115,9 +120,7 @@ def optimiser(model: Simulator, optim: DictConfig) -> torch.optim.Adam:
 
 
 def ema_decay_checked(decay) -> float:
-    if isinstance(decay, bool) or not isinstance(decay, (int, float)) or not 0.0 <= decay < 1.0:
-        raise ValueError(f"optim.ema_decay={decay!r}: must be a number in [0, 1) (0 = off)")
-    return float(decay)
+    return fraction_checked(decay, "optim.ema_decay")
 
 
 def weight_average(model: Simulator, decay: float) -> AveragedModel | None:
