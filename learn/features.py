@@ -226,13 +226,11 @@ def welded(points: np.ndarray, point_nodes: np.ndarray) -> np.ndarray:
     """points [..., P, 3] with every group of points that stand for one FEA node (a beam's end face and its joint's
     face) moved to the group's mean: one position per node, a closed solid instead of blocks that each carry their
     own copy of the interface. The mean's error is at most its farthest copy's (it lies in the copies' hull)."""
-    nodes, group = np.unique(point_nodes, return_inverse=True)
-    count = np.bincount(group, minlength=len(nodes)).astype(points.dtype)
-    moved = np.moveaxis(points, -2, 0)  # [P, ..., 3]
-    total = np.zeros((len(nodes), *moved.shape[1:]), dtype=points.dtype)
-    np.add.at(total, group, moved)
-    mean = total / count.reshape(-1, *([1] * (moved.ndim - 1)))
-    return np.moveaxis(mean[group], 0, -2)
+    _, group, count = np.unique(point_nodes, return_inverse=True, return_counts=True)
+    order = np.argsort(group, kind="stable")  # the copies of each node side by side
+    starts = np.concatenate([[0], np.cumsum(count)[:-1]])
+    mean = np.add.reduceat(points[..., order, :], starts, axis=-2) / count[:, None]  # [..., nodes, 3]
+    return mean[..., group, :]
 
 
 def _corner_quad_point(cells: np.ndarray, nodes: np.ndarray, cell_nodes: np.ndarray,
