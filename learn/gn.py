@@ -17,11 +17,16 @@ def activation_checked(name) -> str:
     return name
 
 
+def fraction_checked(value, name: str) -> float:
+    """A rate in [0, 1) (0 = off), or a ValueError naming the field."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value < 1.0:
+        raise ValueError(f"{name}={value!r}: must be a number in [0, 1) (0 = off)")
+    return float(value)
+
+
 def dropout_checked(p) -> float:
     """model.dropout: the probability of zeroing a hidden unit while training, in [0, 1)."""
-    if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0.0 <= float(p) < 1.0:
-        raise ValueError(f"model.dropout={p!r}: must be a number in [0, 1)")
-    return float(p)
+    return fraction_checked(p, "model.dropout")
 
 
 def mlp(n_in: int, widths: list[int], n_out: int, layer_norm: bool = False, activation: str = "relu",

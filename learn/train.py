@@ -18,7 +18,7 @@ from learn import checkpoint
 from learn.conditions import envelope
 from learn.dataset import (GraphSet, TurnedSet, augment, augment_angles, episode_paths, extend_split, load_features,
                            split_names)
-from learn.gn import dropout_checked
+from learn.gn import dropout_checked, fraction_checked
 from learn.metrics import multistep_loss, rollout_errors
 from learn.model import (Simulator, integer_in, rollout_lattice_turns_checked, rollout_rotations_checked,
                          term_retention)
@@ -98,13 +98,6 @@ def learning_rate(cfg: DictConfig, epoch: int) -> float:
         return base * (factor + (1.0 - factor) * 0.5 * (1.0 + math.cos(math.pi * done)))
     drop = epoch >= int(cfg.optim.lr_drop_at * cfg.epochs)
     return base * (factor if drop else 1.0)
-
-
-def fraction_checked(value, name: str) -> float:
-    """A rate in [0, 1) (0 = off), or a ValueError naming the field."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value < 1.0:
-        raise ValueError(f"{name}={value!r}: must be a number in [0, 1) (0 = off)")
-    return float(value)
 
 
 def weight_decay_checked(decay) -> float:
