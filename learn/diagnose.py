@@ -5,7 +5,9 @@ For every design of each split (conf/diagnose.yaml), per frame k = 1..F-1 and as
 - one_step: one step from the FEA's frame k-1 (teacher forcing): how well the step itself is learned;
 - motion: how far the FEA's points move in that step (the scale a one-step error compares with);
 and per start frame s, the final-frame error of a rollout started from the FEA's frame s instead of frame 0
-(a model trained on whole-episode rollouts only ever saw its own intermediate states); plus the input floor
+(a model trained on whole-episode rollouts only ever saw its own intermediate states; a direct model,
+model.update=direct, answers every frame from frame 0, so its one_step is defined at k = 1 and its final-frame
+error from frame 0 only: the other entries are NaN); plus the input floor
 (learn.rollout.input_floor). And how the beams are oriented, per frame, in degrees (median over each design's beams):
 chord_error, the angle between the rollout's and the FEA's chord (start section centre -> end section centre), beside
 chord_rotation, the angle the FEA's chord has turned since frame 0; their ratio says how much of each beam's turn the
@@ -93,12 +95,17 @@ def diagnose_set(model: Simulator, data: GraphSet) -> dict:
         js, bs = unroll(model, data.joint_state[0], data.beam_state[0], data.static, data.t)
         rollout = rebuild_all_points(js, bs).numpy()
         rollout_chords = chords(bs[1:])
-        j1, b1 = model.step(data.joint_state[:-1], data.beam_state[:-1], data.static, data.t[:-1])
-        one_step = rebuild_all_points(j1, b1).numpy()  # [F-1, P, 3]: frame k from the FEA's frame k-1
-        from_start = []
-        for s in range(F - 1):
-            js, bs = unroll(model, data.joint_state[s], data.beam_state[s], data.static, data.t[s:])
-            from_start.append(rebuild_all_points(js[-1], bs[-1]).numpy())
+        if model.direct:  # every frame from the design (frame 0): no step starts from a later FEA frame
+            one_step = np.full_like(rollout[1:], np.nan)
+            one_step[0] = rollout[1]
+            from_start = [rollout[-1]] + [np.full_like(rollout[-1], np.nan)] * (F - 2)
+        else:
+            j1, b1 = model.step(data.joint_state[:-1], data.beam_state[:-1], data.static, data.t[:-1])
+            one_step = rebuild_all_points(j1, b1).numpy()  # [F-1, P, 3]: frame k from the FEA's frame k-1
+            from_start = []
+            for s in range(F - 1):
+                js, bs = unroll(model, data.joint_state[s], data.beam_state[s], data.static, data.t[s:])
+                from_start.append(rebuild_all_points(js[-1], bs[-1]).numpy())
     dist = lambda a, b: np.linalg.norm(a - b, axis=-1)  # noqa: E731
     rel = lambda e: (max_per_item(e, owner, n) / size).T  # noqa: E731  [n, ...]
     beam_item = np.repeat(np.arange(n), np.diff(data.beam_offsets))
@@ -113,11 +120,18 @@ def diagnose_set(model: Simulator, data: GraphSet) -> dict:
 
 
 def medians(d: dict) -> dict:
-    return {k: np.median(v, axis=0).tolist() for k, v in d.items()}
+    """Median over designs of every entry; an entry a model does not define (NaN: a direct model's steps from later
+    FEA frames) is None, so the JSON stays standard."""
+    plain = lambda x: None if isinstance(x, float) and np.isnan(x) else x  # noqa: E731
+    out = {}
+    for k, v in d.items():
+        m = np.median(v, axis=0).tolist()
+        out[k] = [plain(x) for x in m] if isinstance(m, list) else plain(m)
+    return out
 
 
 def markdown(report: dict) -> str:
-    pct = lambda xs: " | ".join(f"{100 * x:.2f}" for x in xs)  # noqa: E731
+    pct = lambda xs: " | ".join("-" if x is None else f"{100 * x:.2f}" for x in xs)  # noqa: E731
     deg = lambda xs: " | ".join(f"{x:.2f}" for x in xs)  # noqa: E731
     lines = [f"# Error sources of {report['checkpoint']}", "",
              "Median over each split's designs of max point error / design size (%), per frame k; beam chords: the "
@@ -160,7 +174,7 @@ def plot(report: dict, path: Path) -> None:
                                   ("one_step", "s--", "one step from FEA frame k-1"),
                                   ("motion", "^:", "FEA motion in step k"),
                                   ("final_from_start", "d-.", "final error, start at FEA frame k-1")):
-            ax.plot(k, 100 * np.asarray(m[key]), style, label=label)
+            ax.plot(k, 100 * np.asarray(m[key], dtype=float), style, label=label)  # None (not defined): a gap
         ax.set_title(f"{split}: {m['n_designs']} designs (medians)")
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel("max error / design size (%)")

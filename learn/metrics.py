@@ -29,7 +29,8 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
                    geometry: str = "columns", carry: float = 1.0, chord_weight: float = 0.0,
                    final_weight: float = 0.0) -> torch.Tensor:
     """Mean squared error of the states after 1..horizon steps from every start frame; `noise_std` (in units of
-    the per-column step std) perturbs the start states so the model learns to correct its own drift.
+    the per-column step std) perturbs the start states so the model learns to correct its own drift. A direct model
+    (model.update=direct) answers every frame 1..F-1 from frame 0 in one pass: the horizon and the carry do not apply.
     geometry="columns": every state column in units of its step std (stress columns weighted by stress_weight);
     geometry="points": the geometry as the points it rebuilds (what the evaluation measures), their distance to
     the FEA's in units of the mean geometry step std, plus the stress columns as above.
@@ -47,6 +48,8 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
     F = len(batch.t)
     h = max(1, min(int(horizon), F - 1))
     S = F - h  # start frames 0 .. F-1-h
+    if model.direct:  # every frame from frame 0 in one pass: no horizon, nothing carried between steps
+        h, S = 1, 1
     j, b = batch.joint_state[:S], batch.beam_state[:S]
     if noise_std > 0:
         j = j + noise_std * model.joint_delta.std * torch.randn(j.shape, generator=generator)
@@ -66,8 +69,13 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
             j, b = j.detach(), b.detach()
         elif carry < 1:  # the same states forward, carry x the gradient backward
             j, b = carry * j + (1 - carry) * j.detach(), carry * b + (1 - carry) * b.detach()
-        j, b = model.step(j, b, batch.static, batch.t[k:S + k])
-        tj, tb = batch.joint_state[k + 1:S + k + 1], batch.beam_state[k + 1:S + k + 1]
+        if model.direct:
+            js, bs = unroll(model, j[0], b[0], batch.static, batch.t)
+            j, b = js[1:], bs[1:]
+            tj, tb = batch.joint_state[1:], batch.beam_state[1:]
+        else:
+            j, b = model.step(j, b, batch.static, batch.t[k:S + k])
+            tj, tb = batch.joint_state[k + 1:S + k + 1], batch.beam_state[k + 1:S + k + 1]
         ej, eb = (j - tj) / model.joint_delta.std, (b - tb) / model.beam_delta.std
         loss = loss + columns(ej, eb)
         if chord_weight > 0:

@@ -18,6 +18,7 @@ TERMS = ("joint_geometry", "joint_stress", "joint_bc", "beam_geometry", "beam_st
 EDGE_FEATURES = 6  # sender centre and receiver centre relative to the beam's middle centre
 EDGE_FEATURES_LOCAL = 18  # the same in the beam's frame + the two joints' frames relative to the beam's (6 each)
 FRAMES = ("global", "local", "fixed")  # model.frame: the frames features and updates are expressed in
+UPDATES = ("additive", "kinematic", "direct")  # model.update: how the network's output dG makes the next state
 
 
 class SingleGN(nn.Module):
@@ -185,7 +186,9 @@ class Simulator(nn.Module):
           about z, so the rotation augmentation adds nothing),
           update ("additive": G(t+1) = G(t) + dG, the thesis; "kinematic": geometry updates are
           predicted in each block's parent frame and placed outward from the fixed joint, learn/kinematics.py;
-          stress stays additive), stress_input (bool, default true: the stress terms are network inputs; false:
+          stress stays additive; "direct": G(t) = G(0) + dG(G(0), t), every frame from the flat design and its
+          time, nothing fed back, so no error compounds and the frames are one batched pass; a variant beside
+          the thesis' step-by-step update, learn.rollout.unroll), stress_input (bool, default true: the stress terms are network inputs; false:
           predicted and carried in the state, not read back), pca ({term: [D, K]} for every name in TERMS)
           -- all plain types, so they are saved in checkpoints.
     """
@@ -198,8 +201,12 @@ class Simulator(nn.Module):
         self.local = args.get("frame", "global") == "local"  # every block in its own frame
         self.rotated = args.get("frame", "global") != "global"  # features and updates in frames R (local or fixed)
         self.kinematic = args.get("update", "additive") == "kinematic"
-        if args.get("update", "additive") not in ("additive", "kinematic"):
-            raise ValueError(f"model.update={args.get('update')!r}: must be additive | kinematic")
+        self.direct = args.get("update", "additive") == "direct"  # every frame from the design: G(0) + dG(G(0), t)
+        if args.get("update", "additive") not in UPDATES:
+            raise ValueError(f"model.update={args.get('update')!r}: must be {' | '.join(UPDATES)}")
+        if self.direct and not args.get("time_input", True):
+            raise ValueError("model.update=direct needs model.time_input=true (the time is all that tells its "
+                             "frames apart)")
         self.pca = nn.ModuleDict({t: TermPCA(*args["pca"][t]) for t in TERMS})
         self.edge_norm = Normalizer(EDGE_FEATURES_LOCAL if self.local else EDGE_FEATURES)
         self.joint_delta = Normalizer(JOINT.state_size)
@@ -327,8 +334,10 @@ class Simulator(nn.Module):
         return self.core(*self.encode(joint_state, beam_state, static, t, R), static.index)
 
     def step(self, joint_state, beam_state, static: Static, t):
-        """G(t+1) = G(t) + dG, in raw units. With pin_fixed_joint the fixed joint's geometry does not move (its
-        top face is glued to the support): a boundary condition applied outside the network."""
+        """G(t+1) = G(t) + dG, in raw units (update direct: G(t) = G(0) + dG, called with the design's states G(0)
+        and the time t of the frame it answers, learn.rollout.unroll). With pin_fixed_joint the fixed joint's
+        geometry does not move (its top face is glued to the support): a boundary condition applied outside the
+        network."""
         R = self.frames(joint_state, beam_state, static)
         dj, db = self(joint_state, beam_state, static, t, R)
         if self.kinematic:
@@ -366,6 +375,13 @@ class Simulator(nn.Module):
         js, bs = joint_state[..., JOINT.stress_slice] + dsj, beam_state[..., BEAM.stress_slice] + dsb
         return torch.cat([jg, js], -1), torch.cat([bg, bs], -1)
 
+    def updates(self, joint_state, beam_state) -> tuple[torch.Tensor, torch.Tensor, slice]:
+        """The updates dG the network answers along states [F, n, D] of an episode, and the frames they start from:
+        G(k+1) - G(k) from frames :-1, or with update direct G(k) - G(0) for k >= 1, all from frame 0."""
+        if self.direct:
+            return joint_state[1:] - joint_state[:1], beam_state[1:] - beam_state[:1], slice(0, 1)
+        return joint_state.diff(dim=0), beam_state.diff(dim=0), slice(0, -1)
+
     @classmethod
     def fit(cls, args: dict, joint_state: torch.Tensor, beam_state: torch.Tensor, static: Static,
             retention: float | dict = 1.0, delta_floor: float = 0.01) -> "Simulator":
@@ -390,10 +406,10 @@ class Simulator(nn.Module):
                 for t, x in probe.raw_terms(joint_state, beam_state, static, R).items():
                     add(t, x)
                 add("edge_norm", probe.edge_features(joint_state, beam_state, static, R))
-                dj, db = joint_state.diff(dim=0), beam_state.diff(dim=0)
+                dj, db, start = probe.updates(joint_state, beam_state)
                 if probe.rotated:  # updates as the network predicts them: in the frame of the step's start state
-                    dj = frames.rotate_state(dj, JOINT, R[0][:-1], to_local=True)
-                    db = frames.rotate_state(db, BEAM, R[1][:-1], to_local=True)
+                    dj = frames.rotate_state(dj, JOINT, R[0][start], to_local=True)
+                    db = frames.rotate_state(db, BEAM, R[1][start], to_local=True)
                 add("joint_delta", dj)
                 add("beam_delta", db)
                 if probe.kinematic:

@@ -17,7 +17,15 @@ from learn.symmetry import (LATTICE_QUARTER_TURNS, lattice_matrices, rotation_an
 
 def unroll(model: Simulator, joint_state: torch.Tensor, beam_state: torch.Tensor, static: Static,
            t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """From states [..., J, Dj], [..., B, Db] at t[0], step through t[1:]; -> [F, ..., J, Dj], [F, ..., B, Db]."""
+    """From states [..., J, Dj], [..., B, Db] at t[0], step through t[1:]; -> [F, ..., J, Dj], [F, ..., B, Db].
+    A direct model (model.update=direct) answers every frame from the states at t[0] and the frame's time, all
+    frames in one batched pass."""
+    if getattr(model, "direct", False):
+        n, lead = len(t) - 1, joint_state.shape[:-2]
+        times = t[1:].reshape(n, *(1,) * len(lead)).expand(n, *lead)
+        j, b = model.step(joint_state.expand(n, *joint_state.shape), beam_state.expand(n, *beam_state.shape),
+                          static, times)
+        return torch.cat([joint_state[None], j]), torch.cat([beam_state[None], b])
     joints, beams = [joint_state], [beam_state]
     for k in range(len(t) - 1):
         j, b = model.step(joints[-1], beams[-1], static, t[k])

@@ -273,7 +273,7 @@ def test_a_stopped_rollout_gradient_trains_each_step_from_the_state_the_model_re
     assert torch.allclose(grads(half), (g_through + g_stop) / 2, atol=1e-6)
 
 
-@pytest.mark.parametrize("update", ["additive", "kinematic"])
+@pytest.mark.parametrize("update", ["additive", "kinematic", "direct"])
 def test_rotation_averaged_answer_is_equivariant_and_keeps_the_design(features, update):
     """answer_unroll with n rotations: a design rotated by one of the group's angles gets the rotated answer
     (exactly, unlike the network alone); frame 0 is the design itself; n = 1 is the network alone."""
@@ -477,3 +477,43 @@ def test_dropout_acts_while_training_only_and_changes_nothing_when_off(features)
     for bad in (-0.1, 1.0, "0.2", True):
         with pytest.raises(ValueError, match="model.dropout"):
             Simulator.fit({**args, "dropout": bad}, data.joint_state, data.beam_state, data.static)
+
+
+@pytest.mark.parametrize("frame", ["global", "fixed"])
+def test_direct_update_answers_every_frame_from_the_design_alone(features, frame):
+    """model.update=direct: G(t) = G(0) + dG(G(0), t). Frame 0 is the design; each frame is the same whatever other
+    frames are asked for (nothing is fed back), in one batched pass or one at a time; the normalisers are fitted on
+    the displacements from frame 0; the fixed joint stays put; the traced rollout gives the eager numbers; the loss
+    has no horizon; without the time input it is refused."""
+    from learn.evaluate import eager_rollout
+    from learn.metrics import multistep_loss
+    from learn.rollout import compile_rollout, graph_inputs, unroll
+    data = GraphSet.build(features[:3])
+    args = {"core": "double_gn", "latent": 8, "widths": [16, 8], "time_input": True, "global_latent": 4,
+            "pin_fixed_joint": True, "update": "direct", "frame": frame}
+    model = Simulator.fit(args, data.joint_state, data.beam_state, data.static).eval()
+    if frame == "global":  # the updates it answers: displacements from the design, every frame
+        d = (data.joint_state[1:] - data.joint_state[:1]).reshape(-1, JOINT.state_size)
+        assert torch.allclose(model.joint_delta.mean, d.mean(0), atol=1e-4 * float(d.abs().max()))
+    j0, b0, t = data.joint_state[0], data.beam_state[0], data.t
+    with torch.no_grad():
+        js, bs = unroll(model, j0, b0, data.static, t)
+        assert js.shape == data.joint_state.shape and bs.shape == data.beam_state.shape
+        assert torch.equal(js[0], j0) and torch.equal(bs[0], b0)
+        for k in (1, len(t) - 1):  # frame k alone, asked for without the frames before it
+            jk, bk = unroll(model, j0, b0, data.static, t[[0, k]])
+            assert torch.allclose(jk[1], js[k], atol=1e-4) and torch.allclose(bk[1], bs[k], atol=1e-4)
+        fixed = data.static.joint_bc[:, JOINT.bc.slice("fixed")][:, 0] > 0.5
+        G = JOINT.geometry_slice
+        assert torch.equal(js[:, fixed, G], j0[None, fixed, G].expand(len(t), -1, -1))
+        losses = {h: float(multistep_loss(model, data, h)) for h in (1, 3, 10)}
+        assert losses[1] == pytest.approx(losses[10]) == pytest.approx(losses[3])
+        compiled = compile_rollout(model, features[0])
+        assert torch.allclose(compiled(*graph_inputs(features[1]))[2], eager_rollout(model, features[1])(),
+                              atol=1e-3)
+    model.train()
+    loss = multistep_loss(model, data, 10)
+    loss.backward()
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in model.parameters())
+    with pytest.raises(ValueError, match="model.update=direct needs model.time_input=true"):
+        Simulator.fit({**args, "time_input": False}, data.joint_state, data.beam_state, data.static)

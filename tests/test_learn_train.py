@@ -279,7 +279,8 @@ def test_every_model_config_composes_and_trains(data_dir, tmp_path, model_name):
 
 @pytest.mark.parametrize("option", ["model.update=kinematic", "loss_geometry=points", "rollout_gradient=stop",
                                     "rollout_gradient=0.5", "model.frame=fixed", "rotations_redraw=true", "lattice_turns=4",
-                                    "chord_weight=1.0", "precision=bf16", "teacher_weight=1.0"])
+                                    "chord_weight=1.0", "precision=bf16", "teacher_weight=1.0",
+                                    "model.update=direct"])
 def test_training_options_reduce_the_loss(data_dir, tmp_path, option):
     summary = train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=16", "optim.lr=3e-3", "batch_size=1",
                                           "rollout_horizon=3", option)))
@@ -521,6 +522,20 @@ def test_diagnose_separates_one_step_from_rollout_error_per_split(trained, tmp_p
     assert (tmp_path / "diagnose.md").exists() and (tmp_path / "diagnose.png").stat().st_size > 0
     with pytest.raises(ValueError, match=r"\['holdout'\] not in"):
         diagnose(cfg_for("diagnose", [f"checkpoint={run / 'best.pt'}", f"out_dir={tmp_path}", "splits=[holdout]"]))
+
+
+def test_diagnose_of_a_direct_model_leaves_out_the_steps_it_does_not_take(data_dir, tmp_path):
+    """A direct model answers every frame from the design: its one step is defined from frame 0 only (= its first
+    frame), its final error from frame 0 only (= its rollout's); the rest are None in the JSON and '-' in the table."""
+    from learn.diagnose import diagnose
+    train(cfg_for("train", tiny(data_dir, tmp_path / "run", "epochs=2", "model.update=direct")))
+    report = diagnose(cfg_for("diagnose", [f"checkpoint={tmp_path / 'run' / 'best.pt'}", f"out_dir={tmp_path}",
+                                           "splits=[train]"]))
+    m = json.loads((tmp_path / "diagnose.json").read_text())["splits"]["train"]
+    assert m == report["splits"]["train"]
+    assert m["one_step"][0] == pytest.approx(m["rollout"][0]) and m["one_step"][1:] == [None] * 9
+    assert m["final_from_start"][0] == pytest.approx(m["rollout"][-1]) and m["final_from_start"][1:] == [None] * 9
+    assert "| - |" in (tmp_path / "diagnose.md").read_text()
 
 
 def test_a_weight_average_is_what_validation_and_the_checkpoints_answer_with_and_it_resumes(data_dir, tmp_path):
