@@ -14,7 +14,9 @@ chord_rotation, the angle the FEA's chord has turned since frame 0; their ratio 
 model gets wrong, which, times the lever arm to the far side of the grid, is most of the position error. And per
 block (each joint's and beam's points, rigidly fitted onto the FEA's: learn.rigid.block_parts; median over a design's
 joints and over its beams): orientation error beside the FEA block's own turn (deg), centroid placement error and the
-shape error left after the fit (/ design size). The medians go to diagnose.json / diagnose.md and one plot, split
+shape error left after the fit (/ design size); and each beam's bend, its turn relative to its start joint, predicted
+against the FEA's: the part of a beam's orientation error that is its own, not carried from the joints before it.
+The medians go to diagnose.json / diagnose.md and one plot, split
 beside split, so train vs held-out separates fitting from generalisation.
 """
 from __future__ import annotations
@@ -35,7 +37,7 @@ from learn.dataset import GraphSet, load_features
 from learn.features import BEAM_POINTS, JOINT_POINTS, rebuild_all_points
 from learn.metrics import beam_chords, fea_points, max_per_item, point_owner
 from learn.model import Simulator
-from learn.rigid import block_parts
+from learn.rigid import best_rotation, block_parts, rotation_angle_deg
 from learn.rollout import input_floor, unroll
 
 matplotlib.use("Agg")
@@ -83,7 +85,27 @@ def block_split(rollout: np.ndarray, truth: np.ndarray, data: GraphSet, size: np
         for key, x in parts.items():
             med = median_per_item(x, item[kind], n)
             out[f"{kind}_{key}"] = med if key.endswith("deg") else med / size[:, None]
+    start = data.static.index.beam_starts().numpy()
+    bend_error, bend = relative_turns(blocks(rollout, J), blocks(truth, J), start)
+    out["beam_bend_error_deg"] = median_per_item(bend_error, item["beam"], n)
+    out["beam_bend_deg"] = median_per_item(bend, item["beam"], n)
     return out
+
+
+def relative_turns(predicted: tuple[np.ndarray, np.ndarray], truth: tuple[np.ndarray, np.ndarray],
+                   start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each beam's turn relative to its start joint, from block points ([F, J, nj, 3], [F, B, nb, 3]) and the
+    beams' start joints [B] -> [F-1, B] twice: the angle between the predicted and the FEA's relative rotation
+    (the beam's own bend, apart from how its joint is turned: the local part of the orientation error, against
+    the absolute one the rigid fit reports) and the FEA's relative turn since frame 0 (deg)."""
+    def turns(joints, beams, ref_joints, ref_beams):  # block rotations from frame 0 -> beam relative to its joint
+        Rj = best_rotation(ref_joints[None], joints[1:])  # [F-1, J, 3, 3]
+        Rb = best_rotation(ref_beams[None], beams[1:])
+        return np.swapaxes(Rj[:, start], -1, -2) @ Rb  # in the joint's own frame: R_joint^T R_beam
+    ref = truth[0][0], truth[1][0]
+    rel_pred, rel_true = turns(*predicted, *ref), turns(*truth, *ref)
+    return (rotation_angle_deg(rel_pred @ np.swapaxes(rel_true, -1, -2)),
+            rotation_angle_deg(rel_true))
 
 
 def diagnose_set(model: Simulator, data: GraphSet) -> dict:
@@ -150,7 +172,9 @@ def markdown(report: dict) -> str:
                       f"| {kind}s: orientation error, rigid fit (deg) | {deg(m[f'{kind}_orientation_error_deg'])} |",
                       f"| {kind}s: FEA turn since frame 0 (deg) | {deg(m[f'{kind}_turn_deg'])} |",
                       f"| {kind}s: centroid placement error | {pct(m[f'{kind}_placement'])} |",
-                      f"| {kind}s: shape error after the rigid fit | {pct(m[f'{kind}_shape'])} |")), "",
+                      f"| {kind}s: shape error after the rigid fit | {pct(m[f'{kind}_shape'])} |")),
+                  f"| beams: bend error, turn relative to the start joint (deg) | {deg(m['beam_bend_error_deg'])} |",
+                  f"| beams: FEA bend, turn relative to the start joint (deg) | {deg(m['beam_bend_deg'])} |", "",
                   f"input floor (PCA'd geometry): median {100 * m['input_floor']:.3f} %", ""]
     return "\n".join(lines)
 

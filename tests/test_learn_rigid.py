@@ -48,3 +48,22 @@ def test_block_parts_separate_turn_placement_and_shape(block):
     assert parts["orientation_error_deg"] == pytest.approx(0.0, abs=1e-5)
     assert parts["placement"] == pytest.approx(0.0, abs=1e-9)
     assert parts["shape"] == pytest.approx(0.1 * np.linalg.norm(truth - centre, axis=1).max(), rel=1e-9)
+
+
+def test_a_beams_bend_is_its_turn_relative_to_its_start_joint(block):
+    """learn.diagnose.relative_turns: a beam turned 30 deg against its joint bends 30 deg; a prediction that turns
+    joint and beam alike by 15 deg more has no bend error (its error is carried, not the beam's own); one whose beam
+    turns 20 deg against its joint errs by 10 deg."""
+    from learn.diagnose import relative_turns
+    joint, beam = block[:6], block[6:] + 20.0
+    A = rotation([0.2, 1.0, 0.3], 40.0)  # the whole grid's turn
+    B = rotation([1.0, 0.0, 0.0], 30.0)  # the beam's own bend about its axis
+    frames = lambda bend, extra: (  # noqa: E731  [F=2, 1 block, N, 3]: flat, then turned
+        np.stack([joint, joint @ (extra @ A).T])[:, None], np.stack([beam, beam @ (extra @ A @ bend).T])[:, None])
+    truth = frames(B, np.eye(3))
+    error, bend = relative_turns(truth, truth, np.array([0]))
+    assert bend[0, 0] == pytest.approx(30.0, abs=1e-6) and error[0, 0] == pytest.approx(0.0, abs=1e-5)
+    carried = frames(B, rotation([0.0, 1.0, 0.0], 15.0))
+    assert relative_turns(carried, truth, np.array([0]))[0][0, 0] == pytest.approx(0.0, abs=1e-5)
+    short = frames(rotation([1.0, 0.0, 0.0], 20.0), np.eye(3))
+    assert relative_turns(short, truth, np.array([0]))[0][0, 0] == pytest.approx(10.0, abs=1e-5)
