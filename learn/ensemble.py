@@ -34,6 +34,10 @@ class Ensemble(nn.Module):
         return any(m.kinematic for m in self.members)
 
     @property
+    def stiffness(self) -> bool:  # learn.rollout.CompiledRollout: one trace per graph size when any member needs it
+        return any(getattr(m, "stiffness", False) for m in self.members)
+
+    @property
     def args(self) -> dict:
         """What a report records of the model: the first member's model args with the member count, and every
         member's args (PCA sizes aside) when they differ."""

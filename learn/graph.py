@@ -175,9 +175,13 @@ class GraphIndex:
     def beam_starts(self) -> torch.Tensor:
         """[B] the start joint of every beam: the sender of its first directed edge (a beam's edge a -> c comes
         before c -> a, in one graph as in a disjoint union)."""
+        return self.beam_ends()[0]
+
+    def beam_ends(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """[B] twice: the start and the end joint of every beam (sender and receiver of its first directed edge)."""
         edges = torch.arange(len(self.edge_beam), device=self.edge_beam.device)
         first = edges.new_full((self.n_beams,), len(self.edge_beam)).scatter_reduce(0, self.edge_beam, edges, "amin")
-        return self.senders.index_select(0, first)
+        return self.senders.index_select(0, first), self.receivers.index_select(0, first)
 
 
 def disjoint_union(parts: list[Incidence]) -> tuple[Incidence, np.ndarray, np.ndarray]:

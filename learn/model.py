@@ -8,7 +8,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from learn import frames, kinematics
+from learn import frames, kinematics, stiffness
 from learn.gn import GNBlock, ProcessorBlock, activation_checked, dropout_checked, mlp
 from learn.graph import BEAM, JOINT, Block, GraphIndex
 from learn.pca import Moments, Normalizer, TermPCA
@@ -18,7 +18,7 @@ TERMS = ("joint_geometry", "joint_stress", "joint_bc", "beam_geometry", "beam_st
 EDGE_FEATURES = 6  # sender centre and receiver centre relative to the beam's middle centre
 EDGE_FEATURES_LOCAL = 18  # the same in the beam's frame + the two joints' frames relative to the beam's (6 each)
 FRAMES = ("global", "local", "fixed")  # model.frame: the frames features and updates are expressed in
-UPDATES = ("additive", "kinematic", "direct")  # model.update: how the network's output dG makes the next state
+UPDATES = ("additive", "kinematic", "direct", "stiffness")  # model.update: how the network's output makes the next state
 
 
 class SingleGN(nn.Module):
@@ -87,6 +87,16 @@ class EncodeProcessDecode(nn.Module):
 
 
 CORES = {"single_gn": SingleGN, "double_gn": DoubleGN, "epd": EncodeProcessDecode}
+
+
+def output_layers(core: nn.Module) -> tuple[nn.Linear, nn.Linear]:
+    """The linear layers that give a core's joint and beam outputs."""
+    if isinstance(core, EncodeProcessDecode):
+        heads = (core.decode_joint, core.decode_beam)
+    else:
+        last = core.gn if isinstance(core, SingleGN) else core.blocks[-1]
+        heads = (last.joint_update, last.beam_update)
+    return tuple(next(m for m in reversed(h) if isinstance(m, nn.Linear)) for h in heads)
 
 
 @dataclass
@@ -188,7 +198,10 @@ class Simulator(nn.Module):
           predicted in each block's parent frame and placed outward from the fixed joint, learn/kinematics.py;
           stress stays additive; "direct": G(t) = G(0) + dG(G(0), t), every frame from the flat design and its
           time, nothing fed back, so no error compounds and the frames are one batched pass; a variant beside
-          the thesis' step-by-step update, learn.rollout.unroll), stress_input (bool, default true: the stress terms are network inputs; false:
+          the thesis' step-by-step update, learn.rollout.unroll; "stiffness": the network also predicts every
+          beam's stiffness and natural increment and every joint's anchoring and load, one linear solve per
+          design moves the joints rigidly (the matrix stiffness method, learn/stiffness.py) and the beams with
+          them, and the additive dG is added on top; frame global only), stress_input (bool, default true: the stress terms are network inputs; false:
           predicted and carried in the state, not read back), pca ({term: [D, K]} for every name in TERMS)
           -- all plain types, so they are saved in checkpoints.
     """
@@ -204,6 +217,9 @@ class Simulator(nn.Module):
         self.direct = args.get("update", "additive") == "direct"  # every frame from the design: G(0) + dG(G(0), t)
         if args.get("update", "additive") not in UPDATES:
             raise ValueError(f"model.update={args.get('update')!r}: must be {' | '.join(UPDATES)}")
+        self.stiffness = args.get("update", "additive") == "stiffness"
+        if self.stiffness and args.get("frame", "global") != "global":
+            raise ValueError(f"model.update=stiffness needs model.frame=global (got {args.get('frame')!r})")
         if self.direct and not args.get("time_input", True):
             raise ValueError("model.update=direct needs model.time_input=true (the time is all that tells its "
                              "frames apart)")
@@ -226,9 +242,15 @@ class Simulator(nn.Module):
         if args["core"] in ("double_gn", "epd"):
             core_args["n_blocks"] = integer_in(args.get("n_blocks", 2), "model.n_blocks",
                                                2 if args["core"] == "double_gn" else 1, 64, "message-passing blocks")
-        self.core = CORES[args["core"]](joint_in, beam_in, self.edge_norm.mean.shape[0], JOINT.state_size,
-                                        BEAM.state_size, int(args["latent"]), [int(w) for w in args["widths"]],
-                                        **core_args)
+        extra_out = (stiffness.JOINT_OUT, stiffness.BEAM_OUT) if self.stiffness else (0, 0)
+        self.core = CORES[args["core"]](joint_in, beam_in, self.edge_norm.mean.shape[0],
+                                        JOINT.state_size + extra_out[0], BEAM.state_size + extra_out[1],
+                                        int(args["latent"]), [int(w) for w in args["widths"]], **core_args)
+        if self.stiffness:  # the rigid solve carries the geometry at first; the additive geometry update starts at 0
+            for layer, block in zip(output_layers(self.core), (JOINT, BEAM)):
+                with torch.no_grad():
+                    layer.weight[block.geometry_slice].zero_()
+                    layer.bias[block.geometry_slice].zero_()
 
     # ------------------------------------------------------------------------------------------- features
     def input_terms(self, block: Block) -> tuple[str, ...]:
@@ -342,6 +364,14 @@ class Simulator(nn.Module):
         dj, db = self(joint_state, beam_state, static, t, R)
         if self.kinematic:
             return self._kinematic_step(joint_state, beam_state, static, dj, db, R)
+        if self.stiffness:  # the grid's rigid compromise first (learn/stiffness.py), then the additive update on it
+            dj, joint_raw = dj.split([JOINT.state_size, stiffness.JOINT_OUT], -1)
+            db, beam_raw = db.split([BEAM.state_size, stiffness.BEAM_OUT], -1)
+            scale = self.joint_delta.std[JOINT.origin_slice].mean()  # mm: a joint centre's step
+            fixed = static.joint_bc[..., JOINT.bc.slice("fixed")][..., 0] > 0.5
+            v, omega = stiffness.solve(joint_state[..., JOINT.origin_slice], beam_state[..., BEAM.origin_slice],
+                                       joint_raw, beam_raw, fixed, static.index, scale)
+            joint_state, beam_state = stiffness.rigidly_moved(joint_state, beam_state, v, omega, static.index)
         dj, db = self.joint_delta.inverse(dj), self.beam_delta.inverse(db)
         if self.rotated:
             dj = frames.rotate_state(dj, JOINT, R[0], to_local=False)

@@ -138,7 +138,8 @@ class CompiledRollout:
     """TorchScript rollouts (traced, frozen), called like _Unroll with graph_inputs(f): the same numbers as the
     eager rollout, a fraction of the Python overhead per step, as many steps as the traced example has frames - 1.
     An additive model has one trace that serves every graph; a kinematic model's placement order (learn/kinematics.py)
-    is baked into its trace, so it keeps one per graph (incidence and fixed joint), traced on first use."""
+    is baked into its trace, so it keeps one per graph (incidence and fixed joint), traced on first use; a stiffness
+    model's linear system has the graph's size baked in, so it keeps one per size (joints, beams)."""
 
     def __init__(self, model: Simulator, example: EpisodeFeatures):
         self.model = model
@@ -146,6 +147,8 @@ class CompiledRollout:
         self(*graph_inputs(example))
 
     def key(self, inputs: tuple[torch.Tensor, ...]):
+        if getattr(self.model, "stiffness", False) and not self.model.kinematic:
+            return tuple(inputs[0].shape[-2:]) + tuple(inputs[1].shape[-2:])  # its solve's size is traced in
         if not self.model.kinematic:
             return None
         joint_bc, senders, receivers, edge_beam = inputs[2], inputs[4], inputs[5], inputs[6]

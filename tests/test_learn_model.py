@@ -273,7 +273,7 @@ def test_a_stopped_rollout_gradient_trains_each_step_from_the_state_the_model_re
     assert torch.allclose(grads(half), (g_through + g_stop) / 2, atol=1e-6)
 
 
-@pytest.mark.parametrize("update", ["additive", "kinematic", "direct"])
+@pytest.mark.parametrize("update", ["additive", "kinematic", "direct", "stiffness"])
 def test_rotation_averaged_answer_is_equivariant_and_keeps_the_design(features, update):
     """answer_unroll with n rotations: a design rotated by one of the group's angles gets the rotated answer
     (exactly, unlike the network alone); frame 0 is the design itself; n = 1 is the network alone."""

@@ -1,0 +1,195 @@
+"""A learned stiffness-method step (model.update=stiffness): joints are rigid bodies, each beam an elastic connector
+between its two joints whose stiffness and natural increment the network predicts, and one small linear solve per
+design and step finds the joints' increments that balance every beam at once.
+
+Why: in the FEA a beam bends as far as the grid's loops let it (scripts/beam_bends.py: an up actuator reaches 23-92 %
+of its free bend, correlation 0.36 with it), and an FEA increment couples the whole grid through K du = dF. An additive
+step reads each block's increment off two hops of messages; here the network only says, per beam, how it wants its two
+joints to move relative to each other and how stiffly, per joint, what holds and loads it, and the solve (the matrix
+stiffness method of frame analysis) makes the compromise for the whole grid, as the FEA's does.
+
+Unknowns per joint: a translation v (mm) and a rotation omega (rad), as x = (v, r omega) with r = ROTATION_ARM mm so
+both are lengths. A beam from joint a to joint c with middle centre q sees its ends' relative motion at q and their
+relative rotation,
+    D_b x = (v_c + omega_c x (q - p_c) - v_a - omega_a x (q - p_a),  r (omega_c - omega_a)),
+and stores 1/2 (D_b x - e_b)^T W_b (D_b x - e_b): W_b = L L^T + EPS I (SPD from 21 outputs), e_b its natural increment
+(6 outputs, in units of the step scale, bounded by WISH_BOUND). Each joint adds 1/2 (x - u_j)^T diag(m_j) (x - u_j): a motion u_j of its own
+(what loads it alone, e.g. its share of the weight) held at stiffness m_j, so that every term is a wish with a weight
+and the answer a compromise between wishes, never larger than they are for want of stiffness. The fixed joint is held:
+its unknowns are eliminated. The minimum over the free joints,
+    K x = f,  K = sum_b D_b^T W_b D_b + diag(m),  f = sum_b D_b^T W_b e_b + m u,
+is solved per design (dense [6J, 6J], SPD, float64: 48 free unknowns for a 3x3 grid). Every stiffness is bounded
+(BOUND) and floored (EPS), so no network output makes the system singular or its answer unbounded. The joints move rigidly by x; a beam's start and
+end sections move with their joints and its middle section with the mean of the two motions. learn.model adds the
+network's additive update dG on top, for what the rigid motion does not carry (the beams' own bend, the stress).
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from learn.graph import BEAM, JOINT, GraphIndex, SECTIONS
+
+JOINT_OUT = 12  # per joint: anchoring stiffness m (6, positive) | own motion u (6, in units of the step scale)
+BEAM_OUT = 27  # per beam: stiffness W (21, Cholesky factor, positive diagonal) | natural increment e (6)
+ROTATION_ARM = 20.0  # mm: r, the lever that makes a rotation a length (about half a beam)
+EPS = 1e-2  # W = L L^T + EPS I and m + EPS: every beam and joint resists every motion a little
+BOUND = 10.0  # entries of L and the anchorings m stay below this (smoothly), so K's condition stays below ~1e6
+WISH_BOUND = 10.0  # step scales: e and u are WISH_BOUND tanh(raw / WISH_BOUND) step scales, so that no step can wish
+                   # for more than that however far outside its training range a network is driven (linear near 0)
+_TRIL = torch.tril_indices(6, 6)
+_ON_DIAGONAL = _TRIL[0] == _TRIL[1]
+
+
+def skew(d: torch.Tensor) -> torch.Tensor:
+    """[..., 3] -> [..., 3, 3] with skew(d) @ w = d x w."""
+    z = torch.zeros_like(d[..., 0])
+    return torch.stack([torch.stack([z, -d[..., 2], d[..., 1]], -1),
+                        torch.stack([d[..., 2], z, -d[..., 0]], -1),
+                        torch.stack([-d[..., 1], d[..., 0], z], -1)], -2)
+
+
+def bounded(raw: torch.Tensor) -> torch.Tensor:
+    """raw -> (-BOUND, BOUND), the identity near 0."""
+    return BOUND * torch.tanh(raw / BOUND)
+
+
+def positive(raw: torch.Tensor) -> torch.Tensor:
+    """raw -> (0, BOUND): softplus, smoothly capped."""
+    return bounded(F.softplus(raw))
+
+
+def spd(raw: torch.Tensor) -> torch.Tensor:
+    """[..., 21] -> [..., 6, 6] L L^T + EPS I, L lower triangular (raw in torch.tril_indices order) with bounded
+    entries and a positive diagonal."""
+    entries = torch.where(_ON_DIAGONAL, positive(raw), bounded(raw))
+    L = raw.new_zeros(*raw.shape[:-1], 6, 6)
+    L[..., _TRIL[0], _TRIL[1]] = entries
+    return L @ L.transpose(-1, -2) + EPS * torch.eye(6, dtype=raw.dtype)
+
+
+def wish(raw: torch.Tensor) -> torch.Tensor:
+    """A network output as a wished motion in step scales: raw near 0, never beyond WISH_BOUND."""
+    return WISH_BOUND * torch.tanh(raw / WISH_BOUND)
+
+
+def connection(p_a: torch.Tensor, p_c: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+    """Joint centres [..., B, 3] at a beam's start and end, its middle centre q -> D [..., B, 6, 12] mapping
+    (v_a, r omega_a, v_c, r omega_c) to the relative motion at q and r times the relative rotation."""
+    eye = torch.eye(3, dtype=q.dtype).expand(*q.shape[:-1], 3, 3)
+    zero = torch.zeros_like(eye)
+    r = ROTATION_ARM
+    # omega x d = -d x omega = -skew(d) omega
+    top = torch.cat([-eye, skew(q - p_a) / r, eye, -skew(q - p_c) / r], -1)
+    bottom = torch.cat([zero, -eye, zero, eye], -1)
+    return torch.cat([top, bottom], -2)
+
+
+def design_slots(g: GraphIndex, n_joints: int) -> tuple[torch.Tensor, torch.Tensor, int, int]:
+    """Design [J] and index within it [J] of every joint, the number of designs and the most joints one has."""
+    if g.joint_graph is None:
+        return torch.zeros(n_joints, dtype=torch.long), torch.arange(n_joints), 1, n_joints
+    counts = torch.bincount(g.joint_graph, minlength=g.n_graphs)
+    starts = torch.cumsum(counts, 0) - counts
+    return g.joint_graph, torch.arange(n_joints) - starts[g.joint_graph], g.n_graphs, int(counts.max())
+
+
+def solve(centres: torch.Tensor, middles: torch.Tensor, joint_raw: torch.Tensor, beam_raw: torch.Tensor,
+          fixed: torch.Tensor, g: GraphIndex, scale: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Joint centres [..., J, 3], beam middle centres [..., B, 3], the network's stiffness outputs [..., J, JOINT_OUT]
+    and [..., B, BEAM_OUT], the fixed flags [..., J] (broadcast), the step scale (mm) -> every joint's translation v
+    [..., J, 3] (mm) and rotation omega [..., J, 3] (rad) at the minimum (module doc); the fixed joint's unknowns are
+    eliminated (held at 0 exactly). Assembled and solved in float64 outside autocast (a few 54 x 54 systems)."""
+    out_dtype = centres.dtype
+    with torch.autocast("cpu", enabled=False):
+        centres, middles = centres.double(), middles.double()
+        joint_raw, beam_raw, scale = joint_raw.double(), beam_raw.double(), scale.double()
+        lead, J = centres.shape[:-2], centres.shape[-2]
+        a, c = g.beam_ends()
+        design, local, G, N = design_slots(g, J)
+        n = 6 * N  # unknowns per design
+        W = spd(beam_raw[..., :21])
+        e = wish(beam_raw[..., 21:27]) * scale
+        D = connection(centres.index_select(-2, a), centres.index_select(-2, c), middles)
+        DtW = D.transpose(-1, -2) @ W  # [..., B, 12, 6]
+        k6 = torch.arange(6)
+        joint_dof = design[:, None] * n + 6 * local[:, None] + k6  # [J, 6] in the stacked designs' unknowns
+        beam_dof = torch.cat([joint_dof.index_select(0, a), joint_dof.index_select(0, c)], -1)  # [B, 12]
+        pairs = (beam_dof // n)[:, :, None] * n * n + (beam_dof % n)[:, :, None] * n + (beam_dof % n)[:, None, :]
+        K = torch.zeros(*lead, G * n * n, dtype=torch.float64).index_add(-1, pairs.reshape(-1),
+                                                                          (DtW @ D).reshape(*lead, -1))
+        f = torch.zeros(*lead, G * n, dtype=torch.float64).index_add(-1, beam_dof.reshape(-1),
+                                                                      (DtW @ e[..., None]).reshape(*lead, -1))
+        m = positive(joint_raw[..., :6]) + EPS
+        diag = (design[:, None] * n * n + (6 * local[:, None] + k6) * (n + 1)).reshape(-1)  # [J * 6]
+        K = K.index_add(-1, diag, m.reshape(*lead, -1))
+        f = f.index_add(-1, joint_dof.reshape(-1), (m * wish(joint_raw[..., 6:12]) * scale).reshape(*lead, -1))
+        # free unknowns: those of the joints that are not fixed (a design with fewer joints pads with held ones)
+        free = torch.zeros(*fixed.shape[:-1], G * n, dtype=torch.float64).index_add(
+            -1, joint_dof.reshape(-1), (1.0 - fixed.double())[..., None].expand(*fixed.shape, 6).reshape(
+                *fixed.shape[:-1], -1))
+        K = K.reshape(*lead, G, n, n)
+        free = free.reshape(*free.shape[:-1], G, n)
+        K = K * free[..., :, None] * free[..., None, :] + torch.diag_embed(1.0 - free)
+        x = torch.linalg.solve(K, (f.reshape(*lead, G, n) * free)[..., None])
+        x = x.reshape(*lead, G * n).index_select(-1, joint_dof.reshape(-1)).reshape(*lead, J, 6).to(out_dtype)
+        return x[..., :3], x[..., 3:] / ROTATION_ARM
+
+
+def rotation(omega: torch.Tensor) -> torch.Tensor:
+    """[..., 3] rotation vectors -> [..., 3, 3] rotation matrices (the exponential of their skew matrices)."""
+    return torch.linalg.matrix_exp(skew(omega))
+
+
+def _point_fields(block) -> torch.Tensor:
+    return torch.tensor([f.kind == "point" for f in block.geometry.fields])
+
+
+def rigidly_moved(joint_state: torch.Tensor, beam_state: torch.Tensor, v: torch.Tensor, omega: torch.Tensor,
+                  g: GraphIndex) -> tuple[torch.Tensor, torch.Tensor]:
+    """The states with every joint moved rigidly by (v, omega) about its centre, each beam's start and end sections
+    with their joints and its middle section with the mean of its two joints' motions (stress columns unchanged).
+    Outside autocast: the states are carried in float32, never rounded to bfloat16."""
+    with torch.autocast("cpu", enabled=False):
+        return _rigidly_moved(joint_state, beam_state, v.to(joint_state.dtype), omega.to(joint_state.dtype), g)
+
+
+def _rigidly_moved(joint_state, beam_state, v, omega, g: GraphIndex):
+    a, c = g.beam_ends()
+    R = rotation(omega)  # [..., J, 3, 3]
+    p = joint_state[..., JOINT.origin_slice]
+    jg = joint_state[..., JOINT.geometry_slice].unflatten(-1, (-1, 3))  # [..., J, fields, 3]
+    point = _point_fields(JOINT)[:, None].to(jg)  # the centre (the joint's origin) moves by v, its vectors turn
+    jg = point * (jg + v[..., None, :]) + (1.0 - point) * torch.einsum("...ij,...fj->...fi", R, jg)
+
+    def motion(joint: torch.Tensor, x: torch.Tensor) -> torch.Tensor:  # a joint's displacement of points x [..., B, 3]
+        pj = p.index_select(-2, joint)
+        return v.index_select(-2, joint) + torch.einsum("...ij,...j->...i", R.index_select(-3, joint), x - pj) - (x - pj)
+
+    bg = beam_state[..., BEAM.geometry_slice].unflatten(-1, (len(SECTIONS), 3, 3))  # [..., B, section, field, 3]
+    R_mid = rotation(0.5 * (omega.index_select(-2, a) + omega.index_select(-2, c)))
+    sections = []
+    for s, (name, Rs) in enumerate(zip(SECTIONS, (R.index_select(-3, a), R_mid, R.index_select(-3, c)))):
+        centre, vectors = bg[..., s, 0, :], bg[..., s, 1:, :]
+        if name == "start":
+            moved = centre + motion(a, centre)
+        elif name == "end":
+            moved = centre + motion(c, centre)
+        else:
+            moved = centre + 0.5 * (motion(a, centre) + motion(c, centre))
+        sections.append(torch.cat([moved[..., None, :], torch.einsum("...ij,...fj->...fi", Rs, vectors)], -2))
+    bg = torch.stack(sections, -3).flatten(-3)
+    return (torch.cat([jg.flatten(-2), joint_state[..., JOINT.stress_slice]], -1),
+            torch.cat([bg, beam_state[..., BEAM.stress_slice]], -1))
+
+
+def layout_checked() -> None:
+    """The beam geometry this module moves: per section (start, middle, end) a centre point, then two vectors."""
+    names = [(f.name, f.kind) for f in BEAM.geometry.fields]
+    want = [(f"{s}_{n}", k) for s in SECTIONS for n, k in (("center", "point"), ("width", "vector"),
+                                                           ("height", "vector"))]
+    if names != want:
+        raise RuntimeError(f"learn.stiffness expects beam geometry fields {want}, got {names}")
+
+
+layout_checked()

@@ -1,0 +1,141 @@
+"""learn.stiffness: the learned stiffness-method step. The solve is the minimum of the stated energy (checked against
+autograd of that energy, written out here), a lone beam on a fixed joint gets exactly its natural increment, designs
+solved together equal designs solved alone, the fixed joint stays, and a rigid motion of the joints moves every block
+rigidly with them; the simulator with update=stiffness trains, compiles and refuses rotated frames."""
+import numpy as np
+import pytest
+import torch
+
+from data_schema.testing import synthetic_episode
+from learn import stiffness
+from learn.dataset import GraphSet
+from learn.features import extract, rebuild_all_points
+from learn.graph import JOINT, Incidence
+from learn.model import Simulator
+from learn.symmetry import rotation_z
+
+torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="module")
+def features():
+    return [extract(synthetic_episode(3, 3, 5, 3, 3, 5, seed=s), name=f"ep{s}.h5") for s in range(3)]
+
+
+def energy(x, centres, middles, joint_raw, beam_raw, fixed, a, c, scale):
+    """The module doc's energy, written out joint by joint and beam by beam (x: [J, 6] = (v, r omega))."""
+    r = stiffness.ROTATION_ARM
+    total = torch.zeros((), dtype=torch.float64)
+    for b in range(len(a)):
+        ia, ic, q = int(a[b]), int(c[b]), middles[b]
+        va, wa, vc, wc = x[ia, :3], x[ia, 3:] / r, x[ic, :3], x[ic, 3:] / r
+        rel = torch.cat([vc + torch.cross(wc, q - centres[ic], dim=0) - va - torch.cross(wa, q - centres[ia], dim=0),
+                         r * (wc - wa)])
+        W = stiffness.spd(beam_raw[b, :21].double())
+        d = rel - stiffness.wish(beam_raw[b, 21:].double()) * scale
+        total = total + 0.5 * d @ W @ d
+    m = stiffness.positive(joint_raw[:, :6].double()) + stiffness.EPS
+    u = stiffness.wish(joint_raw[:, 6:].double()) * scale
+    return total + 0.5 * (m * (x - u) ** 2).sum()
+
+
+def random_outputs(J, B, seed=0):
+    gen = torch.Generator().manual_seed(seed)
+    return torch.randn(J, stiffness.JOINT_OUT, generator=gen), torch.randn(B, stiffness.BEAM_OUT, generator=gen)
+
+
+def test_the_solve_is_the_minimum_of_the_energy_and_keeps_the_fixed_joint(features):
+    f = features[0]
+    g = GraphSet.build([f]).static.index
+    centres = torch.as_tensor(f.joint_state[0][:, JOINT.origin_slice], dtype=torch.float64)
+    middles = torch.as_tensor(f.beam_state[0][:, 9:12], dtype=torch.float64)  # middle_center
+    joint_raw, beam_raw = random_outputs(f.incidence.n_joints, f.incidence.n_beams)
+    fixed = torch.as_tensor(f.joint_bc[:, JOINT.bc.slice("fixed")][:, 0] > 0.5)
+    scale = torch.tensor(2.0)
+    v, omega = stiffness.solve(centres, middles, joint_raw, beam_raw, fixed, g, scale)
+    x = torch.cat([v, omega * stiffness.ROTATION_ARM], -1).double().requires_grad_(True)
+    a, c = g.beam_ends()
+    E = energy(x, centres, middles, joint_raw, beam_raw, fixed.double(), a, c, scale)
+    (grad,) = torch.autograd.grad(E, x)
+    assert grad[~fixed].abs().max() < 1e-5 * (1 + x.abs().max())  # stationary in every free unknown (float32 out)
+    assert x[fixed].abs().max() == 0 and x[~fixed].abs().max() > 0.1  # the fixed joint's unknowns are eliminated
+
+
+def test_a_lone_beam_on_a_fixed_joint_gets_its_natural_increment():
+    g = Incidence.from_beams(np.array([[0, 1]]), 2).tensors()
+    centres = torch.tensor([[0.0, 0.0, 0.0], [60.0, 10.0, 0.0]])
+    middles = torch.tensor([[30.0, 5.0, 1.0]])
+    joint_raw = torch.full((2, stiffness.JOINT_OUT), -40.0)  # the least anchoring (EPS) ...
+    joint_raw[:, 6:] = 0.0  # ... and no motion of its own
+    beam_raw = torch.randn(1, stiffness.BEAM_OUT, generator=torch.Generator().manual_seed(1))
+    beam_raw[0, :21] = torch.where(stiffness._ON_DIAGONAL, 5.0, 0.0)  # a stiff beam (W ~ 25 I) on a joint held by EPS
+    v, omega = stiffness.solve(centres, middles, joint_raw, beam_raw, torch.tensor([True, False]), g, torch.tensor(1.5))
+    q = middles[0]
+    rel = v[1] + torch.cross(omega[1], q - centres[1], dim=0)  # joint 0 is held: its motion is ~0
+    got = torch.cat([rel, stiffness.ROTATION_ARM * omega[1]])
+    want = stiffness.wish(beam_raw[0, 21:]) * 1.5
+    torch.testing.assert_close(got, want, atol=2e-3 * float(want.abs().max()), rtol=0)  # EPS / W of it held back
+
+
+def test_designs_solved_together_equal_each_solved_alone(features):
+    small = extract(synthetic_episode(2, 2, 5, 3, 3, 5, seed=7), name="small.h5")
+    parts = [features[0], small, features[1]]
+    union = GraphSet.build(parts)
+    J, B = union.joint_offsets[-1], union.beam_offsets[-1]
+    joint_raw, beam_raw = random_outputs(J, B, seed=3)
+    fixed = union.static.joint_bc[:, JOINT.bc.slice("fixed")][:, 0] > 0.5
+    centres, middles = union.joint_state[0][:, JOINT.origin_slice], union.beam_state[0][:, 9:12]
+    v, omega = stiffness.solve(centres, middles, joint_raw, beam_raw, fixed, union.static.index, torch.tensor(1.0))
+    for i, f in enumerate(parts):
+        js, bs = slice(*union.joint_offsets[i:i + 2]), slice(*union.beam_offsets[i:i + 2])
+        alone = GraphSet.build([f])
+        va, wa = stiffness.solve(centres[js], middles[bs], joint_raw[js], beam_raw[bs], fixed[js],
+                                 alone.static.index, torch.tensor(1.0))
+        torch.testing.assert_close(v[js], va, atol=1e-4, rtol=1e-4)
+        torch.testing.assert_close(omega[js], wa, atol=1e-6, rtol=1e-4)
+
+
+def test_a_rigid_motion_of_the_joints_moves_every_block_rigidly(features):
+    f = features[0]
+    data = GraphSet.build([f])
+    js, bs = data.joint_state[0].double(), data.beam_state[0].double()
+    R = torch.as_tensor(rotation_z(0.4), dtype=torch.float64) @ stiffness.rotation(torch.tensor([0.3, -0.2, 0.0],
+                                                                                               dtype=torch.float64))
+    t = torch.tensor([5.0, -3.0, 8.0], dtype=torch.float64)
+    p = js[:, JOINT.origin_slice]
+    omega = torch.as_tensor(_log(R.numpy()), dtype=torch.float64).expand(len(p), 3)
+    v = p @ R.T + t - p  # each joint's centre goes where the rigid motion takes it
+    moved = stiffness.rigidly_moved(js, bs, v, omega, data.static.index)
+    torch.testing.assert_close(rebuild_all_points(*moved), rebuild_all_points(js, bs) @ R.T + t, atol=1e-9, rtol=0)
+    torch.testing.assert_close(moved[0][:, JOINT.stress_slice], js[:, JOINT.stress_slice])
+
+
+def _log(R: np.ndarray) -> np.ndarray:
+    """The rotation vector of a rotation matrix (angle < pi)."""
+    angle = np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))
+    axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / (2 * np.sin(angle))
+    return angle * axis
+
+
+def test_a_stiffness_simulator_trains_compiles_and_refuses_rotated_frames(features):
+    from learn.evaluate import eager_rollout
+    from learn.metrics import multistep_loss
+    from learn.rollout import compile_rollout, graph_inputs
+    data = GraphSet.build(features)
+    args = {"core": "double_gn", "latent": 8, "widths": [16, 8], "update": "stiffness", "pin_fixed_joint": True,
+            "global_latent": 4}
+    model = Simulator.fit(args, data.joint_state, data.beam_state, data.static)
+    loss = multistep_loss(model, data, 4)
+    loss.backward()
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in model.parameters())
+    model.eval()
+    with torch.no_grad():
+        j, b = model.step(data.joint_state[:1], data.beam_state[:1], data.static, data.t[:1])
+        fixed = data.static.joint_bc[:, JOINT.bc.slice("fixed")][:, 0] > 0.5
+        G = JOINT.geometry_slice
+        torch.testing.assert_close(j[0, fixed, G], data.joint_state[0, fixed, G], atol=1e-3, rtol=0)
+        compiled = compile_rollout(model, features[0])
+        torch.testing.assert_close(compiled(*graph_inputs(features[1]))[2], eager_rollout(model, features[1])(),
+                                   atol=1e-3, rtol=1e-4)
+    with pytest.raises(ValueError, match="model.update=stiffness needs model.frame=global"):
+        Simulator.fit({**args, "frame": "local"}, data.joint_state, data.beam_state, data.static)
