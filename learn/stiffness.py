@@ -137,8 +137,16 @@ def solve(centres: torch.Tensor, middles: torch.Tensor, joint_raw: torch.Tensor,
 
 
 def rotation(omega: torch.Tensor) -> torch.Tensor:
-    """[..., 3] rotation vectors -> [..., 3, 3] rotation matrices (the exponential of their skew matrices)."""
-    return torch.linalg.matrix_exp(skew(omega))
+    """[..., 3] rotation vectors -> [..., 3, 3] rotation matrices, exp(skew(omega)) by Rodrigues' formula
+    I + sin(t)/t K + (1 - cos(t))/t^2 K^2 (t = |omega|, Taylor terms below t^2 = 1e-6, so gradients stay finite)."""
+    K = skew(omega)
+    t2 = (omega * omega).sum(-1)[..., None, None]
+    small = t2 < 1e-6
+    safe = torch.where(small, torch.ones_like(t2), t2)
+    t = safe.sqrt()
+    a = torch.where(small, 1.0 - t2 / 6.0, torch.sin(t) / t)
+    b = torch.where(small, 0.5 - t2 / 24.0, (1.0 - torch.cos(t)) / safe)
+    return torch.eye(3, dtype=omega.dtype) + a * K + b * (K @ K)
 
 
 def _point_fields(block) -> torch.Tensor:

@@ -139,3 +139,11 @@ def test_a_stiffness_simulator_trains_compiles_and_refuses_rotated_frames(featur
                                    atol=1e-3, rtol=1e-4)
     with pytest.raises(ValueError, match="model.update=stiffness needs model.frame=global"):
         Simulator.fit({**args, "frame": "local"}, data.joint_state, data.beam_state, data.static)
+
+
+def test_rodrigues_rotation_is_the_matrix_exponential_at_every_angle():
+    omega = torch.tensor([[0.0, 0.0, 0.0], [1e-5, -2e-5, 0.0], [0.3, -0.2, 0.1], [2.0, 1.0, -2.5]], dtype=torch.float64)
+    torch.testing.assert_close(stiffness.rotation(omega), torch.linalg.matrix_exp(stiffness.skew(omega)))
+    omega = omega.clone().requires_grad_(True)
+    stiffness.rotation(omega).sum().backward()
+    assert torch.isfinite(omega.grad).all()
