@@ -18,7 +18,7 @@ TERMS = ("joint_geometry", "joint_stress", "joint_bc", "beam_geometry", "beam_st
 EDGE_FEATURES = 6  # sender centre and receiver centre relative to the beam's middle centre
 EDGE_FEATURES_LOCAL = 18  # the same in the beam's frame + the two joints' frames relative to the beam's (6 each)
 FRAMES = ("global", "local", "fixed")  # model.frame: the frames features and updates are expressed in
-UPDATES = ("additive", "kinematic", "direct", "stiffness")  # model.update: how the network's output makes the next state
+UPDATES = ("additive", "kinematic", "direct", "stiffness")  # model.update: how the network's output makes a state
 
 
 class SingleGN(nn.Module):
@@ -201,7 +201,8 @@ class Simulator(nn.Module):
           the thesis' step-by-step update, learn.rollout.unroll; "stiffness": the network also predicts every
           beam's stiffness and natural increment and every joint's anchoring and load, one linear solve per
           design moves the joints rigidly (the matrix stiffness method, learn/stiffness.py) and the beams with
-          them, and the additive dG is added on top; frame global only), stress_input (bool, default true: the stress terms are network inputs; false:
+          them, and the additive dG is added on top; frame global only),
+          stress_input (bool, default true: the stress terms are network inputs; false:
           predicted and carried in the state, not read back), pca ({term: [D, K]} for every name in TERMS)
           -- all plain types, so they are saved in checkpoints.
     """

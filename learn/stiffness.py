@@ -2,8 +2,9 @@
 between its two joints whose stiffness and natural increment the network predicts, and one small linear solve per
 design and step finds the joints' increments that balance every beam at once.
 
-Why: in the FEA a beam bends as far as the grid's loops let it (scripts/beam_bends.py: an up actuator reaches 23-92 %
-of its free bend, correlation 0.36 with it), and an FEA increment couples the whole grid through K du = dF. An additive
+Why: in the FEA a beam bends as far as the grid's loops let it (scripts/beam_bends.py, 260 episodes: an up actuator
+reaches 20-93 % of its free bend, correlation 0.44 with it), and an FEA increment couples the whole grid through
+K du = dF. An additive
 step reads each block's increment off two hops of messages; here the network only says, per beam, how it wants its two
 joints to move relative to each other and how stiffly, per joint, what holds and loads it, and the solve (the matrix
 stiffness method of frame analysis) makes the compromise for the whole grid, as the FEA's does.
@@ -13,15 +14,16 @@ both are lengths. A beam from joint a to joint c with middle centre q sees its e
 relative rotation,
     D_b x = (v_c + omega_c x (q - p_c) - v_a - omega_a x (q - p_a),  r (omega_c - omega_a)),
 and stores 1/2 (D_b x - e_b)^T W_b (D_b x - e_b): W_b = L L^T + EPS I (SPD from 21 outputs), e_b its natural increment
-(6 outputs, in units of the step scale, bounded by WISH_BOUND). Each joint adds 1/2 (x - u_j)^T diag(m_j) (x - u_j): a motion u_j of its own
-(what loads it alone, e.g. its share of the weight) held at stiffness m_j, so that every term is a wish with a weight
-and the answer a compromise between wishes, never larger than they are for want of stiffness. The fixed joint is held:
-its unknowns are eliminated. The minimum over the free joints,
+(6 outputs, in units of the step scale, bounded by WISH_BOUND). Each joint adds 1/2 (x - u_j)^T diag(m_j) (x - u_j):
+a motion u_j of its own (what loads it alone, e.g. its share of the weight) held at stiffness m_j, so that every term
+is a wish with a weight and the answer a compromise between wishes, never larger than they are for want of stiffness.
+The fixed joint is held: its unknowns are eliminated. The minimum over the free joints,
     K x = f,  K = sum_b D_b^T W_b D_b + diag(m),  f = sum_b D_b^T W_b e_b + m u,
 is solved per design (dense [6J, 6J], SPD, float64: 48 free unknowns for a 3x3 grid). Every stiffness is bounded
-(BOUND) and floored (EPS), so no network output makes the system singular or its answer unbounded. The joints move rigidly by x; a beam's start and
-end sections move with their joints and its middle section with the mean of the two motions. learn.model adds the
-network's additive update dG on top, for what the rigid motion does not carry (the beams' own bend, the stress).
+(BOUND) and floored (EPS), so no network output makes the system singular or its answer unbounded. The joints move
+rigidly by x; a beam's start and end sections move with their joints and its middle section with the mean of the two
+motions. learn.model adds the network's additive update dG on top, for what the rigid motion does not carry (the
+beams' own bend, the stress).
 """
 from __future__ import annotations
 
@@ -172,7 +174,8 @@ def _rigidly_moved(joint_state, beam_state, v, omega, g: GraphIndex):
 
     def motion(joint: torch.Tensor, x: torch.Tensor) -> torch.Tensor:  # a joint's displacement of points x [..., B, 3]
         pj = p.index_select(-2, joint)
-        return v.index_select(-2, joint) + torch.einsum("...ij,...j->...i", R.index_select(-3, joint), x - pj) - (x - pj)
+        turned = torch.einsum("...ij,...j->...i", R.index_select(-3, joint), x - pj)
+        return v.index_select(-2, joint) + turned - (x - pj)
 
     bg = beam_state[..., BEAM.geometry_slice].unflatten(-1, (len(SECTIONS), 3, 3))  # [..., B, section, field, 3]
     R_mid = rotation(0.5 * (omega.index_select(-2, a) + omega.index_select(-2, c)))
