@@ -35,7 +35,7 @@ class Ensemble(nn.Module):
 
     @property
     def stiffness(self) -> bool:  # learn.rollout.CompiledRollout: one trace per graph size when any member needs it
-        return any(getattr(m, "stiffness", False) for m in self.members)
+        return any(m.stiffness for m in self.members)
 
     @property
     def args(self) -> dict:

@@ -37,17 +37,9 @@ class Tree:
     levels: list[tuple[str, torch.Tensor]]  # ("beam" | "joint", indices) placed in this order after the roots
 
 
-def beam_ends(index: GraphIndex) -> tuple[np.ndarray, np.ndarray]:
-    """[B] x 2: the two joints of every beam (either order), from the directed edges."""
-    a, c = np.zeros(index.n_beams, dtype=np.int64), np.zeros(index.n_beams, dtype=np.int64)
-    beam = index.edge_beam.cpu().numpy()
-    a[beam], c[beam] = index.senders.cpu().numpy(), index.receivers.cpu().numpy()
-    return a, c
-
-
 def tree(index: GraphIndex, fixed: np.ndarray) -> Tree:
     """Breadth-first tree from every joint flagged fixed; raises if a joint cannot be reached from one."""
-    senders, receivers = beam_ends(index)
+    senders, receivers = (x.cpu().numpy() for x in index.beam_ends())
     J = index.n_joints
     touching: list[list[int]] = [[] for _ in range(J)]
     for b, (a, c) in enumerate(zip(senders, receivers)):

@@ -214,11 +214,12 @@ class Simulator(nn.Module):
             raise ValueError(f"model.frame={args.get('frame')!r}: must be one of {' | '.join(FRAMES)}")
         self.local = args.get("frame", "global") == "local"  # every block in its own frame
         self.rotated = args.get("frame", "global") != "global"  # features and updates in frames R (local or fixed)
-        self.kinematic = args.get("update", "additive") == "kinematic"
-        self.direct = args.get("update", "additive") == "direct"  # every frame from the design: G(0) + dG(G(0), t)
-        if args.get("update", "additive") not in UPDATES:
-            raise ValueError(f"model.update={args.get('update')!r}: must be {' | '.join(UPDATES)}")
-        self.stiffness = args.get("update", "additive") == "stiffness"
+        update = args.get("update", "additive")
+        if update not in UPDATES:
+            raise ValueError(f"model.update={update!r}: must be {' | '.join(UPDATES)}")
+        self.kinematic = update == "kinematic"
+        self.direct = update == "direct"  # every frame from the design: G(0) + dG(G(0), t)
+        self.stiffness = update == "stiffness"
         if self.stiffness and args.get("frame", "global") != "global":
             raise ValueError(f"model.update=stiffness needs model.frame=global (got {args.get('frame')!r})")
         if self.direct and not args.get("time_input", True):
@@ -370,9 +371,10 @@ class Simulator(nn.Module):
             db, beam_raw = db.split([BEAM.state_size, stiffness.BEAM_OUT], -1)
             scale = self.joint_delta.std[JOINT.origin_slice].mean()  # mm: a joint centre's step
             fixed = static.joint_bc[..., JOINT.bc.slice("fixed")][..., 0] > 0.5
+            ends = static.index.beam_ends()
             v, omega = stiffness.solve(joint_state[..., JOINT.origin_slice], beam_state[..., BEAM.origin_slice],
-                                       joint_raw, beam_raw, fixed, static.index, scale)
-            joint_state, beam_state = stiffness.rigidly_moved(joint_state, beam_state, v, omega, static.index)
+                                       joint_raw, beam_raw, fixed, static.index, scale, ends)
+            joint_state, beam_state = stiffness.rigidly_moved(joint_state, beam_state, v, omega, ends)
         dj, db = self.joint_delta.inverse(dj), self.beam_delta.inverse(db)
         if self.rotated:
             dj = frames.rotate_state(dj, JOINT, R[0], to_local=False)

@@ -20,7 +20,7 @@ def unroll(model: Simulator, joint_state: torch.Tensor, beam_state: torch.Tensor
     """From states [..., J, Dj], [..., B, Db] at t[0], step through t[1:]; -> [F, ..., J, Dj], [F, ..., B, Db].
     A direct model (model.update=direct) answers every frame from the states at t[0] and the frame's time, all
     frames in one batched pass."""
-    if getattr(model, "direct", False):
+    if model.direct:
         n, lead = len(t) - 1, joint_state.shape[:-2]
         times = t[1:].reshape(n, *(1,) * len(lead)).expand(n, *lead)
         j, b = model.step(joint_state.expand(n, *joint_state.shape), beam_state.expand(n, *beam_state.shape),
@@ -147,10 +147,8 @@ class CompiledRollout:
         self(*graph_inputs(example))
 
     def key(self, inputs: tuple[torch.Tensor, ...]):
-        if getattr(self.model, "stiffness", False) and not self.model.kinematic:
-            return tuple(inputs[0].shape[-2:]) + tuple(inputs[1].shape[-2:])  # its solve's size is traced in
-        if not self.model.kinematic:
-            return None
+        if not self.model.kinematic:  # a stiffness model's solve has the graph's size traced in
+            return tuple(inputs[0].shape[-2:]) + tuple(inputs[1].shape[-2:]) if self.model.stiffness else None
         joint_bc, senders, receivers, edge_beam = inputs[2], inputs[4], inputs[5], inputs[6]
         fixed = joint_bc[:, JOINT.bc.slice("fixed")]
         return tuple(tuple(x.reshape(-1).tolist()) for x in (senders, receivers, edge_beam, fixed))

@@ -31,6 +31,7 @@ import torch
 import torch.nn.functional as F
 
 from learn.graph import BEAM, JOINT, GraphIndex, SECTIONS
+from learn.kinematics import POINTS
 
 JOINT_OUT = 12  # per joint: anchoring stiffness m (6, positive) | own motion u (6, in units of the step scale)
 BEAM_OUT = 27  # per beam: stiffness W (21, Cholesky factor, positive diagonal) | natural increment e (6)
@@ -51,9 +52,9 @@ def skew(d: torch.Tensor) -> torch.Tensor:
                         torch.stack([-d[..., 1], d[..., 0], z], -1)], -2)
 
 
-def bounded(raw: torch.Tensor) -> torch.Tensor:
-    """raw -> (-BOUND, BOUND), the identity near 0."""
-    return BOUND * torch.tanh(raw / BOUND)
+def bounded(raw: torch.Tensor, bound: float = BOUND) -> torch.Tensor:
+    """raw -> (-bound, bound), the identity near 0."""
+    return bound * torch.tanh(raw / bound)
 
 
 def positive(raw: torch.Tensor) -> torch.Tensor:
@@ -72,7 +73,7 @@ def spd(raw: torch.Tensor) -> torch.Tensor:
 
 def wish(raw: torch.Tensor) -> torch.Tensor:
     """A network output as a wished motion in step scales: raw near 0, never beyond WISH_BOUND."""
-    return WISH_BOUND * torch.tanh(raw / WISH_BOUND)
+    return bounded(raw, WISH_BOUND)
 
 
 def connection(p_a: torch.Tensor, p_c: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
@@ -97,9 +98,11 @@ def design_slots(g: GraphIndex, n_joints: int) -> tuple[torch.Tensor, torch.Tens
 
 
 def solve(centres: torch.Tensor, middles: torch.Tensor, joint_raw: torch.Tensor, beam_raw: torch.Tensor,
-          fixed: torch.Tensor, g: GraphIndex, scale: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+          fixed: torch.Tensor, g: GraphIndex, scale: torch.Tensor,
+          ends: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Joint centres [..., J, 3], beam middle centres [..., B, 3], the network's stiffness outputs [..., J, JOINT_OUT]
-    and [..., B, BEAM_OUT], the fixed flags [..., J] (broadcast), the step scale (mm) -> every joint's translation v
+    and [..., B, BEAM_OUT], the fixed flags [..., J] (broadcast), the step scale (mm), the beams' ends
+    (g.beam_ends(), computed here when not given) -> every joint's translation v
     [..., J, 3] (mm) and rotation omega [..., J, 3] (rad) at the minimum (module doc); the fixed joint's unknowns are
     eliminated (held at 0 exactly). Assembled and solved in float64 outside autocast (a few 54 x 54 systems)."""
     out_dtype = centres.dtype
@@ -107,7 +110,7 @@ def solve(centres: torch.Tensor, middles: torch.Tensor, joint_raw: torch.Tensor,
         centres, middles = centres.double(), middles.double()
         joint_raw, beam_raw, scale = joint_raw.double(), beam_raw.double(), scale.double()
         lead, J = centres.shape[:-2], centres.shape[-2]
-        a, c = g.beam_ends()
+        a, c = g.beam_ends() if ends is None else ends
         design, local, G, N = design_slots(g, J)
         n = 6 * N  # unknowns per design
         W = spd(beam_raw[..., :21])
@@ -151,25 +154,20 @@ def rotation(omega: torch.Tensor) -> torch.Tensor:
     return torch.eye(3, dtype=omega.dtype) + a * K + b * (K @ K)
 
 
-def _point_fields(block) -> torch.Tensor:
-    return torch.tensor([f.kind == "point" for f in block.geometry.fields])
-
-
 def rigidly_moved(joint_state: torch.Tensor, beam_state: torch.Tensor, v: torch.Tensor, omega: torch.Tensor,
-                  g: GraphIndex) -> tuple[torch.Tensor, torch.Tensor]:
+                  ends: tuple[torch.Tensor, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
     """The states with every joint moved rigidly by (v, omega) about its centre, each beam's start and end sections
-    with their joints and its middle section with the mean of its two joints' motions (stress columns unchanged).
-    Outside autocast: the states are carried in float32, never rounded to bfloat16."""
+    (ends: GraphIndex.beam_ends) with their joints and its middle section with the mean of its two joints' motions
+    (stress columns unchanged). Outside autocast: the states are carried in float32, never rounded to bfloat16."""
     with torch.autocast("cpu", enabled=False):
-        return _rigidly_moved(joint_state, beam_state, v.to(joint_state.dtype), omega.to(joint_state.dtype), g)
+        return _rigidly_moved(joint_state, beam_state, v.to(joint_state.dtype), omega.to(joint_state.dtype), *ends)
 
 
-def _rigidly_moved(joint_state, beam_state, v, omega, g: GraphIndex):
-    a, c = g.beam_ends()
+def _rigidly_moved(joint_state, beam_state, v, omega, a, c):
     R = rotation(omega)  # [..., J, 3, 3]
     p = joint_state[..., JOINT.origin_slice]
     jg = joint_state[..., JOINT.geometry_slice].unflatten(-1, (-1, 3))  # [..., J, fields, 3]
-    point = _point_fields(JOINT)[:, None].to(jg)  # the centre (the joint's origin) moves by v, its vectors turn
+    point = POINTS[JOINT.name].to(jg)  # the centre (the joint's origin) moves by v, its vectors turn
     jg = point * (jg + v[..., None, :]) + (1.0 - point) * torch.einsum("...ij,...fj->...fi", R, jg)
 
     def motion(joint: torch.Tensor, x: torch.Tensor) -> torch.Tensor:  # a joint's displacement of points x [..., B, 3]
