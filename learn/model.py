@@ -222,6 +222,7 @@ class Simulator(nn.Module):
         self.stiffness = update == "stiffness"
         if self.stiffness and args.get("frame", "global") != "global":
             raise ValueError(f"model.update=stiffness needs model.frame=global (got {args.get('frame')!r})")
+        self.beam_middle = stiffness.beam_middle_checked(args.get("beam_middle", "mean"))
         if self.direct and not args.get("time_input", True):
             raise ValueError("model.update=direct needs model.time_input=true (the time is all that tells its "
                              "frames apart)")
@@ -374,7 +375,8 @@ class Simulator(nn.Module):
             ends = static.index.beam_ends()
             v, omega = stiffness.solve(joint_state[..., JOINT.origin_slice], beam_state[..., BEAM.origin_slice],
                                        joint_raw, beam_raw, fixed, static.index, scale, ends)
-            joint_state, beam_state = stiffness.rigidly_moved(joint_state, beam_state, v, omega, ends)
+            joint_state, beam_state = stiffness.rigidly_moved(joint_state, beam_state, v, omega, ends,
+                                                             self.beam_middle)
         dj, db = self.joint_delta.inverse(dj), self.beam_delta.inverse(db)
         if self.rotated:
             dj = frames.rotate_state(dj, JOINT, R[0], to_local=False)

@@ -22,8 +22,17 @@ The fixed joint is held: its unknowns are eliminated. The minimum over the free 
 is solved per design (dense [6J, 6J], SPD, float64: 48 free unknowns for a 3x3 grid). Every stiffness is bounded
 (BOUND) and floored (EPS), so no network output makes the system singular or its answer unbounded. The joints move
 rigidly by x; a beam's start and end sections move with their joints and its middle section with the mean of the two
-motions. learn.model adds the network's additive update dG on top, for what the rigid motion does not carry (the
-beams' own bend, the stress).
+motions (model.beam_middle=mean) or as an elastic beam's middle does (hermite: the cubic Hermite interpolation of its
+ends' motions, below). learn.model adds the network's additive update dG on top, for what the rigid motion does not
+carry (the beams' own bend, the stress).
+
+The middle of a beam whose ends s_a, s_c turn by omega_a, omega_c: Euler-Bernoulli with end loads only (and the
+circular arc of a uniformly curved actuator, to first order) deflects its middle by the cubic Hermite shape,
+    u(1/2) = (u_a + u_c) / 2 + L/8 (omega_a - omega_c) x t     (t the unit chord, L its length),
+while the mean of the two joints' rigid motions at the middle centre q gives L/4 for L/8: twice the bow. Hence
+    u_mid = (u_a(q) + u_c(q)) / 2 - (R_a - R_c)(s_c - s_a) / 8,
+with u_j(x) joint j's rigid motion of a point x and R_j its rotation; exact for any rigid motion of the whole (R_a =
+R_c: no correction, whether or not the beam is straight) and rotated with the design.
 """
 from __future__ import annotations
 
@@ -40,6 +49,7 @@ EPS = 1e-2  # W = L L^T + EPS I and m + EPS: every beam and joint resists every 
 BOUND = 10.0  # entries of L and the anchorings m stay below this (smoothly), so K's condition stays below ~1e6
 WISH_BOUND = 10.0  # step scales: e and u are WISH_BOUND tanh(raw / WISH_BOUND) step scales, so that no step can wish
                    # for more than that however far outside its training range a network is driven (linear near 0)
+BEAM_MIDDLES = ("mean", "hermite")  # model.beam_middle: how a beam's middle section follows its joints (module doc)
 _TRIL = torch.tril_indices(6, 6)
 _ON_DIAGONAL = _TRIL[0] == _TRIL[1]
 
@@ -154,16 +164,27 @@ def rotation(omega: torch.Tensor) -> torch.Tensor:
     return torch.eye(3, dtype=omega.dtype) + a * K + b * (K @ K)
 
 
+def beam_middle_checked(value) -> str:
+    """model.beam_middle: one of BEAM_MIDDLES."""
+    if value not in BEAM_MIDDLES:
+        raise ValueError(f"model.beam_middle={value!r}: must be {' | '.join(BEAM_MIDDLES)} (how a beam's middle "
+                         "section follows its two joints' rigid motions)")
+    return value
+
+
 def rigidly_moved(joint_state: torch.Tensor, beam_state: torch.Tensor, v: torch.Tensor, omega: torch.Tensor,
-                  ends: tuple[torch.Tensor, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+                  ends: tuple[torch.Tensor, torch.Tensor], middle: str = "mean") -> tuple[torch.Tensor, torch.Tensor]:
     """The states with every joint moved rigidly by (v, omega) about its centre, each beam's start and end sections
     (ends: GraphIndex.beam_ends) with their joints and its middle section with the mean of its two joints' motions
-    (stress columns unchanged). Outside autocast: the states are carried in float32, never rounded to bfloat16."""
+    (middle "mean") or by their cubic Hermite interpolation ("hermite", module doc); stress columns unchanged.
+    Outside autocast: the states are carried in float32, never rounded to bfloat16."""
+    hermite = beam_middle_checked(middle) == "hermite"
     with torch.autocast("cpu", enabled=False):
-        return _rigidly_moved(joint_state, beam_state, v.to(joint_state.dtype), omega.to(joint_state.dtype), *ends)
+        return _rigidly_moved(joint_state, beam_state, v.to(joint_state.dtype), omega.to(joint_state.dtype), *ends,
+                              hermite)
 
 
-def _rigidly_moved(joint_state, beam_state, v, omega, a, c):
+def _rigidly_moved(joint_state, beam_state, v, omega, a, c, hermite):
     R = rotation(omega)  # [..., J, 3, 3]
     p = joint_state[..., JOINT.origin_slice]
     jg = joint_state[..., JOINT.geometry_slice].unflatten(-1, (-1, 3))  # [..., J, fields, 3]
@@ -186,6 +207,10 @@ def _rigidly_moved(joint_state, beam_state, v, omega, a, c):
             moved = centre + motion(c, centre)
         else:
             moved = centre + 0.5 * (motion(a, centre) + motion(c, centre))
+            if hermite:  # half the rigid motions' bow: - (R_a - R_c)(s_c - s_a) / 8
+                chord = bg[..., SECTIONS.index("end"), 0, :] - bg[..., SECTIONS.index("start"), 0, :]
+                moved = moved - 0.125 * torch.einsum("...ij,...j->...i", R.index_select(-3, a)
+                                                     - R.index_select(-3, c), chord)
         sections.append(torch.cat([moved[..., None, :], torch.einsum("...ij,...fj->...fi", Rs, vectors)], -2))
     bg = torch.stack(sections, -3).flatten(-3)
     return (torch.cat([jg.flatten(-2), joint_state[..., JOINT.stress_slice]], -1),

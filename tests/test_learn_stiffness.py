@@ -10,7 +10,7 @@ from data_schema.testing import synthetic_episode
 from learn import stiffness
 from learn.dataset import GraphSet
 from learn.features import extract, rebuild_all_points
-from learn.graph import JOINT, Incidence
+from learn.graph import BEAM, JOINT, Incidence
 from learn.model import Simulator
 from learn.symmetry import rotation_z
 
@@ -95,7 +95,8 @@ def test_designs_solved_together_equal_each_solved_alone(features):
         torch.testing.assert_close(omega[js], wa, atol=1e-6, rtol=1e-4)
 
 
-def test_a_rigid_motion_of_the_joints_moves_every_block_rigidly(features):
+@pytest.mark.parametrize("middle", stiffness.BEAM_MIDDLES)
+def test_a_rigid_motion_of_the_joints_moves_every_block_rigidly(features, middle):
     f = features[0]
     data = GraphSet.build([f])
     js, bs = data.joint_state[0].double(), data.beam_state[0].double()
@@ -105,9 +106,38 @@ def test_a_rigid_motion_of_the_joints_moves_every_block_rigidly(features):
     p = js[:, JOINT.origin_slice]
     omega = torch.as_tensor(_log(R.numpy()), dtype=torch.float64).expand(len(p), 3)
     v = p @ R.T + t - p  # each joint's centre goes where the rigid motion takes it
-    moved = stiffness.rigidly_moved(js, bs, v, omega, data.static.index.beam_ends())
+    moved = stiffness.rigidly_moved(js, bs, v, omega, data.static.index.beam_ends(), middle)
     torch.testing.assert_close(rebuild_all_points(*moved), rebuild_all_points(js, bs) @ R.T + t, atol=1e-9, rtol=0)
     torch.testing.assert_close(moved[0][:, JOINT.stress_slice], js[:, JOINT.stress_slice])
+
+
+def test_a_beam_middle_bows_as_the_cubic_hermite_shape_of_its_ends(features):
+    """Small end rotations of a straight beam (the flat design): the middle centre moves by the mean of its ends'
+    motions plus L/8 (omega_a - omega_c) x t with hermite, L/4 with mean (the module doc), to first order in omega
+    (1e-4 rad: second-order terms ~1e-8 of the beam's 30-60 mm, below the 1e-6 mm tolerance)."""
+    data = GraphSet.build([features[1]])
+    js, bs = data.joint_state[0].double(), data.beam_state[0].double()
+    a, c = data.static.index.beam_ends()
+    omega = 1e-4 * torch.randn(len(js), 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    v = torch.zeros_like(omega)
+    centre = bs[:, BEAM.geometry_slice].unflatten(-1, (3, 3, 3))[:, :, 0, :]  # [B, section, 3]
+    s_a, q, s_c = centre.unbind(1)
+    torch.testing.assert_close(q, 0.5 * (s_a + s_c), atol=1e-5, rtol=0)  # straight: q halves the chord (float32 data)
+    p = js[:, JOINT.origin_slice]
+    u_a = torch.cross(omega[a], s_a - p[a], dim=-1)
+    u_c = torch.cross(omega[c], s_c - p[c], dim=-1)
+    bow = torch.cross(omega[a] - omega[c], s_c - s_a, dim=-1)  # L (omega_a - omega_c) x t
+    assert bow.norm(dim=-1).max() > 1e-3  # the beams do bend
+    for middle, share in (("hermite", 1 / 8), ("mean", 1 / 4)):
+        moved = stiffness.rigidly_moved(js, bs, v, omega, (a, c), middle)[1]
+        q_moved = moved[:, BEAM.geometry_slice].unflatten(-1, (3, 3, 3))[:, 1, 0, :]
+        torch.testing.assert_close(q_moved - q, 0.5 * (u_a + u_c) + share * bow, atol=1e-6, rtol=0)
+
+
+def test_beam_middle_is_checked():
+    with pytest.raises(ValueError, match="model.beam_middle='cubic'"):
+        stiffness.rigidly_moved(torch.zeros(1, JOINT.state_size), torch.zeros(0, BEAM.state_size),
+                                torch.zeros(1, 3), torch.zeros(1, 3), (torch.zeros(0, dtype=torch.long),) * 2, "cubic")
 
 
 def _log(R: np.ndarray) -> np.ndarray:
