@@ -36,6 +36,8 @@ R_c: no correction, whether or not the beam is straight) and rotated with the de
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 import torch.nn.functional as F
 
@@ -54,12 +56,20 @@ _TRIL = torch.tril_indices(6, 6)
 _ON_DIAGONAL = _TRIL[0] == _TRIL[1]
 
 
+def _skew_map() -> torch.Tensor:
+    """[3, 9]: d @ it = skew(d) flattened, skew(d) @ w = d x w (the Levi-Civita symbol)."""
+    E = torch.zeros(3, 3, 3)
+    for i, j, k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):  # skew(d)[i, j] = -eps_ijk d_k
+        E[k, i, j], E[k, j, i] = -1.0, 1.0
+    return E.flatten(1)
+
+
+_SKEW = _skew_map()
+
+
 def skew(d: torch.Tensor) -> torch.Tensor:
     """[..., 3] -> [..., 3, 3] with skew(d) @ w = d x w."""
-    z = torch.zeros_like(d[..., 0])
-    return torch.stack([torch.stack([z, -d[..., 2], d[..., 1]], -1),
-                        torch.stack([d[..., 2], z, -d[..., 0]], -1),
-                        torch.stack([-d[..., 1], d[..., 0], z], -1)], -2)
+    return (d @ _SKEW.to(d.dtype)).unflatten(-1, (3, 3))
 
 
 def bounded(raw: torch.Tensor, bound: float = BOUND) -> torch.Tensor:
@@ -86,16 +96,26 @@ def wish(raw: torch.Tensor) -> torch.Tensor:
     return bounded(raw, WISH_BOUND)
 
 
+def _connection_maps() -> tuple[torch.Tensor, torch.Tensor]:
+    """D = D0 + (q - p_a, q - p_c) @ T (the connection below is affine in the two lever arms): D0 [6, 12], T [6, 72]."""
+    eye = torch.eye(3)
+    D0 = torch.zeros(6, 12)
+    D0[:3, :3], D0[:3, 6:9], D0[3:, 3:6], D0[3:, 9:] = -eye, eye, -eye, eye
+    T = torch.zeros(6, 6, 12)  # omega x d = -d x omega = -skew(d) omega, omega = (r omega) / r
+    T[:3, :3, 3:6] = _SKEW.view(3, 3, 3) / ROTATION_ARM
+    T[3:, :3, 9:] = -_SKEW.view(3, 3, 3) / ROTATION_ARM
+    return D0, T.flatten(1)
+
+
+_D0, _T = _connection_maps()
+
+
 def connection(p_a: torch.Tensor, p_c: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
     """Joint centres [..., B, 3] at a beam's start and end, its middle centre q -> D [..., B, 6, 12] mapping
-    (v_a, r omega_a, v_c, r omega_c) to the relative motion at q and r times the relative rotation."""
-    eye = torch.eye(3, dtype=q.dtype).expand(*q.shape[:-1], 3, 3)
-    zero = torch.zeros_like(eye)
-    r = ROTATION_ARM
-    # omega x d = -d x omega = -skew(d) omega
-    top = torch.cat([-eye, skew(q - p_a) / r, eye, -skew(q - p_c) / r], -1)
-    bottom = torch.cat([zero, -eye, zero, eye], -1)
-    return torch.cat([top, bottom], -2)
+    (v_a, r omega_a, v_c, r omega_c) to the relative motion at q and r times the relative rotation:
+    (v_c + omega_c x (q - p_c) - v_a - omega_a x (q - p_a), r (omega_c - omega_a))."""
+    arms = torch.cat([q - p_a, q - p_c], -1)
+    return _D0.to(q.dtype) + (arms @ _T.to(q.dtype)).unflatten(-1, (6, 12))
 
 
 def design_slots(g: GraphIndex, n_joints: int) -> tuple[torch.Tensor, torch.Tensor, int, int]:
@@ -107,47 +127,66 @@ def design_slots(g: GraphIndex, n_joints: int) -> tuple[torch.Tensor, torch.Tens
     return g.joint_graph, torch.arange(n_joints) - starts[g.joint_graph], g.n_graphs, int(counts.max())
 
 
+@dataclass
+class Layout:
+    """Where each joint's and beam's terms go in the stacked designs' systems: the same at every step of a rollout,
+    so built once per graph (Static.stiffness_layout). G designs of n = 6 N unknowns (N: the most joints of one)."""
+    joint_dof: torch.Tensor  # [J * 6] each joint's unknowns among all designs' stacked G * n
+    beam_dof: torch.Tensor  # [B * 12] each beam's two joints' unknowns
+    pairs: torch.Tensor  # [B * 144] each beam's 12 x 12 block in the stacked G * n * n matrices
+    diagonal: torch.Tensor  # [J * 6] each joint's unknowns on the diagonal
+    free: torch.Tensor  # [..., G, n] 1 for the unknowns solved for, 0 for the fixed joint's and the padding's
+    n_designs: int
+    n: int
+
+
+def layout(g: GraphIndex, fixed: torch.Tensor, ends: tuple[torch.Tensor, torch.Tensor]) -> Layout:
+    """The Layout of a graph whose fixed flags are `fixed` [..., J] and beams' ends `ends`."""
+    a, c = ends
+    design, local, G, N = design_slots(g, fixed.shape[-1])
+    n = 6 * N
+    k6 = torch.arange(6)
+    joint_dof = design[:, None] * n + 6 * local[:, None] + k6  # [J, 6]
+    beam_dof = torch.cat([joint_dof.index_select(0, a), joint_dof.index_select(0, c)], -1)  # [B, 12]
+    pairs = (beam_dof // n)[:, :, None] * n * n + (beam_dof % n)[:, :, None] * n + (beam_dof % n)[:, None, :]
+    diagonal = design[:, None] * n * n + (6 * local[:, None] + k6) * (n + 1)
+    held = (1.0 - fixed.double())[..., None].expand(*fixed.shape, 6).reshape(*fixed.shape[:-1], -1)
+    free = torch.zeros(*fixed.shape[:-1], G * n, dtype=torch.float64).index_add(-1, joint_dof.reshape(-1), held)
+    return Layout(joint_dof.reshape(-1), beam_dof.reshape(-1), pairs.reshape(-1), diagonal.reshape(-1),
+                  free.unflatten(-1, (G, n)), G, n)
+
+
 def solve(centres: torch.Tensor, middles: torch.Tensor, joint_raw: torch.Tensor, beam_raw: torch.Tensor,
-          fixed: torch.Tensor, g: GraphIndex, scale: torch.Tensor,
-          ends: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+          fixed: torch.Tensor | None, g: GraphIndex, scale: torch.Tensor,
+          ends: tuple[torch.Tensor, torch.Tensor] | None = None,
+          plan: Layout | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Joint centres [..., J, 3], beam middle centres [..., B, 3], the network's stiffness outputs [..., J, JOINT_OUT]
-    and [..., B, BEAM_OUT], the fixed flags [..., J] (broadcast), the step scale (mm), the beams' ends
-    (g.beam_ends(), computed here when not given) -> every joint's translation v
-    [..., J, 3] (mm) and rotation omega [..., J, 3] (rad) at the minimum (module doc); the fixed joint's unknowns are
-    eliminated (held at 0 exactly). Assembled and solved in float64 outside autocast (a few 54 x 54 systems)."""
+    and [..., B, BEAM_OUT], the fixed flags [..., J] (broadcast; only read to make the layout), the step scale (mm),
+    the beams' ends (g.beam_ends()) and the systems' layout (layout(g, fixed, ends)), both made here when not
+    given -> every joint's translation v [..., J, 3] (mm) and rotation omega [..., J, 3] (rad) at the minimum (module
+    doc); the fixed joint's unknowns are eliminated (held at 0 exactly). Assembled and solved in float64 outside autocast (a
+    few 54 x 54 SPD systems, by Cholesky)."""
     out_dtype = centres.dtype
+    a, c = g.beam_ends() if ends is None else ends
+    plan = layout(g, fixed, (a, c)) if plan is None else plan
     with torch.autocast("cpu", enabled=False):
         centres, middles = centres.double(), middles.double()
         joint_raw, beam_raw, scale = joint_raw.double(), beam_raw.double(), scale.double()
-        lead, J = centres.shape[:-2], centres.shape[-2]
-        a, c = g.beam_ends() if ends is None else ends
-        design, local, G, N = design_slots(g, J)
-        n = 6 * N  # unknowns per design
+        lead, J, G, n = centres.shape[:-2], centres.shape[-2], plan.n_designs, plan.n
         W = spd(beam_raw[..., :21])
         e = wish(beam_raw[..., 21:27]) * scale
         D = connection(centres.index_select(-2, a), centres.index_select(-2, c), middles)
         DtW = D.transpose(-1, -2) @ W  # [..., B, 12, 6]
-        k6 = torch.arange(6)
-        joint_dof = design[:, None] * n + 6 * local[:, None] + k6  # [J, 6] in the stacked designs' unknowns
-        beam_dof = torch.cat([joint_dof.index_select(0, a), joint_dof.index_select(0, c)], -1)  # [B, 12]
-        pairs = (beam_dof // n)[:, :, None] * n * n + (beam_dof % n)[:, :, None] * n + (beam_dof % n)[:, None, :]
-        K = torch.zeros(*lead, G * n * n, dtype=torch.float64).index_add(-1, pairs.reshape(-1),
-                                                                          (DtW @ D).reshape(*lead, -1))
-        f = torch.zeros(*lead, G * n, dtype=torch.float64).index_add(-1, beam_dof.reshape(-1),
-                                                                      (DtW @ e[..., None]).reshape(*lead, -1))
         m = positive(joint_raw[..., :6]) + EPS
-        diag = (design[:, None] * n * n + (6 * local[:, None] + k6) * (n + 1)).reshape(-1)  # [J * 6]
-        K = K.index_add(-1, diag, m.reshape(*lead, -1))
-        f = f.index_add(-1, joint_dof.reshape(-1), (m * wish(joint_raw[..., 6:12]) * scale).reshape(*lead, -1))
-        # free unknowns: those of the joints that are not fixed (a design with fewer joints pads with held ones)
-        free = torch.zeros(*fixed.shape[:-1], G * n, dtype=torch.float64).index_add(
-            -1, joint_dof.reshape(-1), (1.0 - fixed.double())[..., None].expand(*fixed.shape, 6).reshape(
-                *fixed.shape[:-1], -1))
-        K = K.reshape(*lead, G, n, n)
-        free = free.reshape(*free.shape[:-1], G, n)
-        K = K * free[..., :, None] * free[..., None, :] + torch.diag_embed(1.0 - free)
-        x = torch.linalg.solve(K, (f.reshape(*lead, G, n) * free)[..., None])
-        x = x.reshape(*lead, G * n).index_select(-1, joint_dof.reshape(-1)).reshape(*lead, J, 6).to(out_dtype)
+        K = torch.zeros(*lead, G * n * n, dtype=torch.float64).index_add(
+            -1, torch.cat([plan.pairs, plan.diagonal]), torch.cat([(DtW @ D).flatten(-3), m.flatten(-2)], -1))
+        f = torch.zeros(*lead, G * n, dtype=torch.float64).index_add(
+            -1, torch.cat([plan.beam_dof, plan.joint_dof]),
+            torch.cat([(DtW @ e[..., None]).flatten(-3), (m * wish(joint_raw[..., 6:12]) * scale).flatten(-2)], -1))
+        free = plan.free
+        K = K.unflatten(-1, (G, n, n)) * (free[..., :, None] * free[..., None, :]) + torch.diag_embed(1.0 - free)
+        x = torch.cholesky_solve((f.unflatten(-1, (G, n)) * free)[..., None], torch.linalg.cholesky_ex(K)[0])
+        x = x.reshape(*lead, G * n).index_select(-1, plan.joint_dof).unflatten(-1, (J, 6)).to(out_dtype)
         return x[..., :3], x[..., 3:] / ROTATION_ARM
 
 
@@ -184,35 +223,36 @@ def rigidly_moved(joint_state: torch.Tensor, beam_state: torch.Tensor, v: torch.
                               hermite)
 
 
+# each beam section's share of its start and its end joint's motion: start (1, 0), middle (1/2, 1/2), end (0, 1)
+_SHARES = torch.tensor([[1.0, 0.0], [0.5, 0.5], [0.0, 1.0]])
+_MIDDLE = torch.tensor([0.0, 1.0, 0.0])[:, None]  # the section that bows
+
+
 def _rigidly_moved(joint_state, beam_state, v, omega, a, c, hermite):
-    R = rotation(omega)  # [..., J, 3, 3]
+    J, B = omega.shape[-2], len(a)
+    ac = torch.cat([a, c])
+    R_all = rotation(torch.cat([omega, 0.5 * omega.index_select(-2, ac).unflatten(-2, (2, B)).sum(-3)], -2))
+    R, R_mid = R_all[..., :J, :, :], R_all[..., J:, :, :]  # [..., J, 3, 3] every joint's; [..., B, 3, 3] the mean
     p = joint_state[..., JOINT.origin_slice]
     jg = joint_state[..., JOINT.geometry_slice].unflatten(-1, (-1, 3))  # [..., J, fields, 3]
     point = POINTS[JOINT.name].to(jg)  # the centre (the joint's origin) moves by v, its vectors turn
     jg = point * (jg + v[..., None, :]) + (1.0 - point) * torch.einsum("...ij,...fj->...fi", R, jg)
 
-    def motion(joint: torch.Tensor, x: torch.Tensor) -> torch.Tensor:  # a joint's displacement of points x [..., B, 3]
-        pj = p.index_select(-2, joint)
-        turned = torch.einsum("...ij,...j->...i", R.index_select(-3, joint), x - pj)
-        return v.index_select(-2, joint) + turned - (x - pj)
-
     bg = beam_state[..., BEAM.geometry_slice].unflatten(-1, (len(SECTIONS), 3, 3))  # [..., B, section, field, 3]
-    R_mid = rotation(0.5 * (omega.index_select(-2, a) + omega.index_select(-2, c)))
-    sections = []
-    for s, (name, Rs) in enumerate(zip(SECTIONS, (R.index_select(-3, a), R_mid, R.index_select(-3, c)))):
-        centre, vectors = bg[..., s, 0, :], bg[..., s, 1:, :]
-        if name == "start":
-            moved = centre + motion(a, centre)
-        elif name == "end":
-            moved = centre + motion(c, centre)
-        else:
-            moved = centre + 0.5 * (motion(a, centre) + motion(c, centre))
-            if hermite:  # half the rigid motions' bow: - (R_a - R_c)(s_c - s_a) / 8
-                chord = bg[..., SECTIONS.index("end"), 0, :] - bg[..., SECTIONS.index("start"), 0, :]
-                moved = moved - 0.125 * torch.einsum("...ij,...j->...i", R.index_select(-3, a)
-                                                     - R.index_select(-3, c), chord)
-        sections.append(torch.cat([moved[..., None, :], torch.einsum("...ij,...fj->...fi", Rs, vectors)], -2))
-    bg = torch.stack(sections, -3).flatten(-3)
+    centres = bg[..., 0, :]  # [..., B, section, 3]
+    R_ends = R.index_select(-3, ac).unflatten(-3, (2, B))  # [..., 2 (start and end joint), B, 3, 3]
+    arms = centres[..., None, :, :, :] - p.index_select(-2, ac).unflatten(-2, (2, B))[..., None, :]
+    # each end joint's rigid displacement of every section centre: v + R (x - p) - (x - p)  [..., 2, B, section, 3]
+    motions = (v.index_select(-2, ac).unflatten(-2, (2, B))[..., None, :] - arms
+               + torch.einsum("...kbij,...kbsj->...kbsi", R_ends, arms))
+    moved = centres + torch.einsum("sk,...kbsi->...bsi", _SHARES.to(centres), motions)
+    if hermite:  # half the rigid motions' bow: - (R_a - R_c)(s_c - s_a) / 8, on the middle section
+        chord = centres[..., SECTIONS.index("end"), :] - centres[..., SECTIONS.index("start"), :]
+        bow = torch.einsum("...bij,...bj->...bi", R_ends[..., 0, :, :, :] - R_ends[..., 1, :, :, :], chord)
+        moved = moved - 0.125 * _MIDDLE.to(moved) * bow[..., None, :]
+    R_sections = torch.stack([R_ends[..., 0, :, :, :], R_mid, R_ends[..., 1, :, :, :]], -3)  # in SECTIONS order
+    vectors = torch.einsum("...sij,...sfj->...sfi", R_sections, bg[..., 1:, :])
+    bg = torch.cat([moved[..., None, :], vectors], -2).flatten(-3)
     return (torch.cat([jg.flatten(-2), joint_state[..., JOINT.stress_slice]], -1),
             torch.cat([bg, beam_state[..., BEAM.stress_slice]], -1))
 
@@ -222,8 +262,9 @@ def layout_checked() -> None:
     names = [(f.name, f.kind) for f in BEAM.geometry.fields]
     want = [(f"{s}_{n}", k) for s in SECTIONS for n, k in (("center", "point"), ("width", "vector"),
                                                            ("height", "vector"))]
-    if names != want:
-        raise RuntimeError(f"learn.stiffness expects beam geometry fields {want}, got {names}")
+    if names != want or SECTIONS != ("start", "middle", "end"):  # _SHARES and _MIDDLE are in this order
+        raise RuntimeError(f"learn.stiffness expects beam geometry fields {want} of sections start, middle, end; "
+                           f"got {names}")
 
 
 layout_checked()
