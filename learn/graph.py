@@ -9,7 +9,7 @@ Columns are only ever addressed through `Term.slice(name)` and `Term.kind_mask(k
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -176,6 +176,15 @@ class GraphIndex:
         """[B] the start joint of every beam: the sender of its first directed edge (a beam's edge a -> c comes
         before c -> a, in one graph as in a disjoint union)."""
         return self.beam_ends()[0]
+
+    def with_reversed(self, reverse: torch.Tensor) -> "GraphIndex":
+        """The graph with the beams where `reverse` [B] is set running the other way: both directed edges of such a
+        beam swap sender and receiver, so its start joint (beam_ends) is its former end joint. The set of directed
+        edges stays the same and a core sums a beam's two edges alike, so only what reads a beam's direction (the
+        stiffness update's solve and rigid motion) sees the difference."""
+        flip = reverse.index_select(0, self.edge_beam)
+        return replace(self, senders=torch.where(flip, self.receivers, self.senders),
+                       receivers=torch.where(flip, self.senders, self.receivers))
 
     def beam_ends(self) -> tuple[torch.Tensor, torch.Tensor]:
         """[B] twice: the start and the end joint of every beam (sender and receiver of its first directed edge)."""

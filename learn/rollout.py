@@ -100,8 +100,15 @@ def answer_unroll(model: Simulator, joint_state: torch.Tensor, beam_state: torch
     static_copies = Static(to(_relabelled(static.joint_bc, Ljbc, None, 0), Ajbc),
                            to(_relabelled(static.beam_bc, Lbbc, reverse, 0), Abbc), g,
                            static.kinematic_tree() if model.kinematic else None)  # one tree: one topology
-    js, bs = unroll(model, to(_relabelled(joint_state, Lj, None, 0), Aj),
-                    to(_relabelled(beam_state, Lb, reverse, 0), Ab), static_copies, t)  # [F, k, L, ..., N, S]
+    js, bs = to(_relabelled(joint_state, Lj, None, 0), Aj), to(_relabelled(beam_state, Lb, reverse, 0), Ab)
+    if model.stiffness and turns > 1:  # its solve and rigid motion read each beam's start and end joint, which a
+        # labelling that reverses a beam swaps: one unroll per labelling, on the graph with those beams reversed
+        parts = [unroll(model, js[:, i], bs[:, i], Static(static_copies.joint_bc[:, i], static_copies.beam_bc[:, i],
+                                                          g.with_reversed(reverse[i])), t)
+                 for i in range(reverse.shape[0])]
+        js, bs = (torch.stack(x, 2) for x in zip(*parts))  # [F, k, L, ..., N, S]
+    else:
+        js, bs = unroll(model, js, bs, static_copies, t)  # [F, k, L, ..., N, S]
     back = lambda x, A: torch.einsum("fk...nd,kde->f...ne", x, A)  # noqa: E731  summed over k -> [F, L, ..., N, S]
     return (_relabelled(back(js, Aj_back), Lj_back, None, 1).sum(1) / copies,
             _relabelled(back(bs, Ab_back), Lb_back, reverse, 1).sum(1) / copies)
