@@ -164,8 +164,8 @@ def solve(centres: torch.Tensor, middles: torch.Tensor, joint_raw: torch.Tensor,
     and [..., B, BEAM_OUT], the fixed flags [..., J] (broadcast; only read to make the layout), the step scale (mm),
     the beams' ends (g.beam_ends()) and the systems' layout (layout(g, fixed, ends)), both made here when not
     given -> every joint's translation v [..., J, 3] (mm) and rotation omega [..., J, 3] (rad) at the minimum (module
-    doc); the fixed joint's unknowns are eliminated (held at 0 exactly). Assembled and solved in float64 outside autocast (a
-    few 54 x 54 SPD systems, by Cholesky)."""
+    doc); the fixed joint's unknowns are eliminated (held at 0 exactly). Assembled and solved in float64 outside
+    autocast (a few 54 x 54 SPD systems, by Cholesky)."""
     out_dtype = centres.dtype
     a, c = g.beam_ends() if ends is None else ends
     plan = layout(g, fixed, (a, c)) if plan is None else plan
