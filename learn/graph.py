@@ -186,6 +186,21 @@ class GraphIndex:
         return replace(self, senders=torch.where(flip, self.receivers, self.senders),
                        receivers=torch.where(flip, self.senders, self.receivers))
 
+    def labelled_union(self, reverse: torch.Tensor) -> "GraphIndex":
+        """L copies of this graph as one disjoint union, copy i with the beams where `reverse` [L, B] is set reversed
+        (with_reversed): joints and beams of copy i follow those of copy i - 1, each copy's designs are designs of
+        their own."""
+        L, J, B = reverse.shape[0], self.n_joints, self.n_beams
+        copies = [self.with_reversed(reverse[i]) for i in range(L)]
+        own = lambda graph, n: torch.zeros(n, dtype=torch.long) if graph is None else graph  # noqa: E731
+        return GraphIndex(senders=torch.cat([c.senders + i * J for i, c in enumerate(copies)]),
+                          receivers=torch.cat([c.receivers + i * J for i, c in enumerate(copies)]),
+                          edge_beam=torch.cat([self.edge_beam + i * B for i in range(L)]),
+                          n_joints=L * J, n_beams=L * B,
+                          joint_graph=torch.cat([own(self.joint_graph, J) + i * self.n_graphs for i in range(L)]),
+                          beam_graph=torch.cat([own(self.beam_graph, B) + i * self.n_graphs for i in range(L)]),
+                          n_graphs=L * self.n_graphs)
+
     def beam_ends(self) -> tuple[torch.Tensor, torch.Tensor]:
         """[B] twice: the start and the end joint of every beam (sender and receiver of its first directed edge)."""
         edges = torch.arange(len(self.edge_beam), device=self.edge_beam.device)

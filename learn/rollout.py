@@ -102,11 +102,13 @@ def answer_unroll(model: Simulator, joint_state: torch.Tensor, beam_state: torch
                            static.kinematic_tree() if model.kinematic else None)  # one tree: one topology
     js, bs = to(_relabelled(joint_state, Lj, None, 0), Aj), to(_relabelled(beam_state, Lb, reverse, 0), Ab)
     if model.stiffness and turns > 1:  # its solve and rigid motion read each beam's start and end joint, which a
-        # labelling that reverses a beam swaps: one unroll per labelling, on the graph with those beams reversed
-        parts = [unroll(model, js[:, i], bs[:, i], Static(static_copies.joint_bc[:, i], static_copies.beam_bc[:, i],
-                                                          g.with_reversed(reverse[i])), t)
-                 for i in range(reverse.shape[0])]
-        js, bs = (torch.stack(x, 2) for x in zip(*parts))  # [F, k, L, ..., N, S]
+        # labelling that reverses a beam swaps: the labellings as one disjoint union, each with those beams reversed
+        L = reverse.shape[0]
+        union = lambda x: x.movedim(1, -3).flatten(-3, -2)  # noqa: E731  [k, L, ..., N, D] -> [k, ..., L N, D]
+        apart = lambda x: x.unflatten(-2, (L, -1)).movedim(-3, 2)  # noqa: E731  [F, k, ..., L N, D] -> [F, k, L, ...]
+        js, bs = unroll(model, union(js), union(bs), Static(union(static_copies.joint_bc), union(static_copies.beam_bc),
+                                                            g.labelled_union(reverse)), t)
+        js, bs = apart(js), apart(bs)  # [F, k, L, ..., N, S]
     else:
         js, bs = unroll(model, js, bs, static_copies, t)  # [F, k, L, ..., N, S]
     back = lambda x, A: torch.einsum("fk...nd,kde->f...ne", x, A)  # noqa: E731  summed over k -> [F, L, ..., N, S]
