@@ -113,7 +113,7 @@ class Static:
         """Where the stiffness update's terms go in its linear systems (the same at every step)."""
         if self.layout is None:
             fixed = self.joint_bc[..., JOINT.bc.slice("fixed")][..., 0] > 0.5
-            self.layout = stiffness.layout(self.index, fixed, self.index.beam_ends())
+            self.layout = stiffness.layout(self.index, fixed)
         return self.layout
 
     def kinematic_tree(self) -> kinematics.Tree:
@@ -379,11 +379,10 @@ class Simulator(nn.Module):
             dj, joint_raw = dj.split([JOINT.state_size, stiffness.JOINT_OUT], -1)
             db, beam_raw = db.split([BEAM.state_size, stiffness.BEAM_OUT], -1)
             scale = self.joint_delta.std[JOINT.origin_slice].mean()  # mm: a joint centre's step
-            ends = static.index.beam_ends()
+            plan = static.stiffness_layout()  # built at the first step, kept for the rest
             v, omega = stiffness.solve(joint_state[..., JOINT.origin_slice], beam_state[..., BEAM.origin_slice],
-                                       joint_raw, beam_raw, None, static.index, scale, ends,
-                                       static.stiffness_layout())
-            joint_state, beam_state = stiffness.rigidly_moved(joint_state, beam_state, v, omega, ends,
+                                       joint_raw, beam_raw, None, static.index, scale, plan)
+            joint_state, beam_state = stiffness.rigidly_moved(joint_state, beam_state, v, omega, plan.ends,
                                                              self.beam_middle)
         dj, db = self.joint_delta.inverse(dj), self.beam_delta.inverse(db)
         if self.rotated:

@@ -82,7 +82,9 @@ def answer_unroll(model: Simulator, joint_state: torch.Tensor, beam_state: torch
     The average makes the answer exactly equivariant to that group, which the network alone is only approximately
     (it learned it from augmentation, or not at all); training and its validation use the network alone (unroll).
     The relabelled copies keep the design's incidence: a beam that runs the other way only swaps its two directed
-    edges, and every core treats its edges alike and sums them. An Ensemble answers with the mean of its members'
+    edges, and every core treats its edges alike and sums them; only a stiffness model reads a beam's direction (its
+    solve and rigid motion), so its labellings go as one disjoint union, each with its reversed beams' ends swapped
+    (GraphIndex.labelled_union). An Ensemble answers with the mean of its members'
     answers, frame by frame. States: one design or one disjoint union of designs (no leading batch axes)."""
     if isinstance(model, Ensemble):
         return stack_mean([answer_unroll(m, joint_state, beam_state, static, t) for m in model.members])

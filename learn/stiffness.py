@@ -131,6 +131,7 @@ def design_slots(g: GraphIndex, n_joints: int) -> tuple[torch.Tensor, torch.Tens
 class Layout:
     """Where each joint's and beam's terms go in the stacked designs' systems: the same at every step of a rollout,
     so built once per graph (Static.stiffness_layout). G designs of n = 6 N unknowns (N: the most joints of one)."""
+    ends: tuple[torch.Tensor, torch.Tensor]  # [B] twice: every beam's start and end joint (GraphIndex.beam_ends)
     joint_dof: torch.Tensor  # [J * 6] each joint's unknowns among all designs' stacked G * n
     beam_dof: torch.Tensor  # [B * 12] each beam's two joints' unknowns
     pairs: torch.Tensor  # [B * 144] each beam's 12 x 12 block in the stacked G * n * n matrices
@@ -140,9 +141,9 @@ class Layout:
     n: int
 
 
-def layout(g: GraphIndex, fixed: torch.Tensor, ends: tuple[torch.Tensor, torch.Tensor]) -> Layout:
-    """The Layout of a graph whose fixed flags are `fixed` [..., J] and beams' ends `ends`."""
-    a, c = ends
+def layout(g: GraphIndex, fixed: torch.Tensor) -> Layout:
+    """The Layout of a graph whose fixed flags are `fixed` [..., J]."""
+    a, c = g.beam_ends()
     design, local, G, N = design_slots(g, fixed.shape[-1])
     n = 6 * N
     k6 = torch.arange(6)
@@ -152,23 +153,22 @@ def layout(g: GraphIndex, fixed: torch.Tensor, ends: tuple[torch.Tensor, torch.T
     diagonal = design[:, None] * n * n + (6 * local[:, None] + k6) * (n + 1)
     held = (1.0 - fixed.double())[..., None].expand(*fixed.shape, 6).reshape(*fixed.shape[:-1], -1)
     free = torch.zeros(*fixed.shape[:-1], G * n, dtype=torch.float64).index_add(-1, joint_dof.reshape(-1), held)
-    return Layout(joint_dof.reshape(-1), beam_dof.reshape(-1), pairs.reshape(-1), diagonal.reshape(-1),
+    return Layout((a, c), joint_dof.reshape(-1), beam_dof.reshape(-1), pairs.reshape(-1), diagonal.reshape(-1),
                   free.unflatten(-1, (G, n)), G, n)
 
 
 def solve(centres: torch.Tensor, middles: torch.Tensor, joint_raw: torch.Tensor, beam_raw: torch.Tensor,
           fixed: torch.Tensor | None, g: GraphIndex, scale: torch.Tensor,
-          ends: tuple[torch.Tensor, torch.Tensor] | None = None,
           plan: Layout | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Joint centres [..., J, 3], beam middle centres [..., B, 3], the network's stiffness outputs [..., J, JOINT_OUT]
     and [..., B, BEAM_OUT], the fixed flags [..., J] (broadcast; only read to make the layout), the step scale (mm),
-    the beams' ends (g.beam_ends()) and the systems' layout (layout(g, fixed, ends)), both made here when not
+    and the systems' layout (layout(g, fixed): the beams' ends and where every term goes), made here when not
     given -> every joint's translation v [..., J, 3] (mm) and rotation omega [..., J, 3] (rad) at the minimum (module
     doc); the fixed joint's unknowns are eliminated (held at 0 exactly). Assembled and solved in float64 outside
     autocast (a few 54 x 54 SPD systems, by Cholesky)."""
     out_dtype = centres.dtype
-    a, c = g.beam_ends() if ends is None else ends
-    plan = layout(g, fixed, (a, c)) if plan is None else plan
+    plan = layout(g, fixed) if plan is None else plan
+    a, c = plan.ends
     with torch.autocast("cpu", enabled=False):
         centres, middles = centres.double(), middles.double()
         joint_raw, beam_raw, scale = joint_raw.double(), beam_raw.double(), scale.double()
