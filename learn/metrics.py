@@ -27,9 +27,12 @@ def beam_chords(beam_state: torch.Tensor) -> torch.Tensor:
 def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_std: float = 0.0,
                    stress_weight: float = 1.0, generator: torch.Generator | None = None,
                    geometry: str = "columns", carry: float = 1.0, chord_weight: float = 0.0,
-                   final_weight: float = 0.0) -> torch.Tensor:
+                   final_weight: float = 0.0, noise_every_step: bool = False) -> torch.Tensor:
     """Mean squared error of the states after 1..horizon steps from every start frame; `noise_std` (in units of
-    the per-column step std) perturbs the start states so the model learns to correct its own drift. A direct model
+    the per-column step std) perturbs the start states so the model learns to correct its own drift;
+    noise_every_step: also the state every later step starts from (the one the model reached), on the columns the
+    network reads (geometry; stress too unless model.stress_input=false), so that each step is trained to bring a
+    displaced state back to the FEA's next frame, not only to continue it. A direct model
     (model.update=direct) answers every frame 1..F-1 from frame 0 in one pass: the horizon and the carry do not apply.
     geometry="columns": every state column in units of its step std (stress columns weighted by stress_weight);
     geometry="points": the geometry as the points it rebuilds (what the evaluation measures), their distance to
@@ -63,8 +66,16 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
     if chord_weight > 0:
         chord_std = beam_chords(batch.beam_state).diff(dim=0).flatten(0, -2).std(0).clamp_min(1e-3)
     columns = lambda ej, eb: (wj * ej ** 2).mean() + (wb * eb ** 2).mean()  # noqa: E731
+    every = noise_every_step and noise_std > 0 and not model.direct
+    if every:  # in raw units: the step std of each column the network reads, 0 on the others
+        read = model.args.get("stress_input", True)
+        nj, nb = (noise_std * delta.std * read_columns(spec, read)
+                  for delta, spec in ((model.joint_delta, JOINT), (model.beam_delta, BEAM)))
     loss = torch.zeros(())
     for k in range(h):
+        if every and k > 0:  # the state the model reached, displaced
+            j = j + nj * torch.randn(j.shape, generator=generator)
+            b = b + nb * torch.randn(b.shape, generator=generator)
         if carry == 0:
             j, b = j.detach(), b.detach()
         elif carry < 1:  # the same states forward, carry x the gradient backward
@@ -87,6 +98,15 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
     if final_weight > 0:  # the last step from the last start frame S-1 lands on the episode's final frame F-1
         loss = loss + final_weight * columns(ej[-1], eb[-1])
     return loss
+
+
+def read_columns(spec, stress: bool) -> torch.Tensor:
+    """[state_size] 1 on the state columns a network reads (geometry; stress when `stress`), 0 elsewhere."""
+    mask = torch.zeros(spec.state_size)
+    mask[spec.geometry_slice] = 1.0
+    if stress:
+        mask[spec.stress_slice] = 1.0
+    return mask
 
 
 def point_owner(batch: GraphSet) -> np.ndarray:

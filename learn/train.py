@@ -125,14 +125,35 @@ def weight_average(model: Simulator, decay: float) -> AveragedModel | None:
     return AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(float(decay)), use_buffers=False)
 
 
-PRECISIONS = ("fp32", "bf16")
+PRECISIONS = ("fp32", "bf16", "auto")
+NATIVE_BF16 = ("avx512_bf16", "amx_bf16")  # /proc/cpuinfo flags of CPUs that multiply bfloat16 matrices natively
 
 
 def precision_checked(name) -> str:
     if name not in PRECISIONS:
         raise ValueError(f"precision={name!r}: must be one of {' | '.join(PRECISIONS)} (bf16: the training loss's "
-                         "forward pass in bfloat16 autocast; validation and every answer stay float32)")
+                         "forward pass in bfloat16 autocast; validation and every answer stay float32; auto: bf16 "
+                         "where the CPU multiplies bfloat16 natively, else fp32)")
     return name
+
+
+def cpu_flags(cpuinfo: str = "/proc/cpuinfo") -> set[str]:
+    """The CPU's feature flags (empty where /proc/cpuinfo is not there)."""
+    try:
+        text = Path(cpuinfo).read_text()
+    except OSError:
+        return set()
+    return {f for line in text.splitlines() if line.startswith("flags") for f in line.split(":", 1)[1].split()}
+
+
+def precision_of(name, flags: set[str] | None = None) -> str:
+    """precision as trained: fp32 | bf16, auto resolved by the CPU's flags. Without native bfloat16 (AVX2 only: an
+    EPYC 7003, session 28) a bfloat16 matrix product is emulated, 20x slower than float32 (4096 x 256 @ 256 x 128,
+    one thread: 180 vs 8.7 ms), so auto picks fp32 there; with AVX512-BF16 bf16 trains alike at 1.25x the speed."""
+    name = precision_checked(name)
+    if name != "auto":
+        return name
+    return "bf16" if set(NATIVE_BF16) & (cpu_flags() if flags is None else flags) else "fp32"
 
 
 def loss_terms(cfg: DictConfig) -> dict:
@@ -140,7 +161,17 @@ def loss_terms(cfg: DictConfig) -> dict:
     validation alike."""
     return {"geometry": cfg.get("loss_geometry", "columns"),
             "chord_weight": weight_checked(cfg, "chord_weight", "no chord term"),
-            "final_weight": weight_checked(cfg, "final_weight", "the final frame weighs as every other")}
+            "final_weight": weight_checked(cfg, "final_weight", "the final frame weighs as every other"),
+            "noise_every_step": flag_checked(cfg, "noise_every_step")}
+
+
+def flag_checked(cfg: DictConfig, name: str) -> bool:
+    """A true/false key of conf/train.yaml (false when absent, as in configs saved before it), else an error naming
+    it."""
+    value = cfg.get(name, False)
+    if not isinstance(value, bool):
+        raise ValueError(f"{name}={value!r}: must be true or false")
+    return value
 
 
 def gradient_carry(cfg: DictConfig) -> float:
@@ -189,7 +220,7 @@ def train_epoch(model: Simulator, opt: torch.optim.Optimizer, train_set: GraphSe
     redrawn = cfg.rotations if cfg.get("rotations_redraw", False) else 1  # else augment turned the set once
     # bf16: matrix products of the forward pass in bfloat16 (CPU autocast); the states, the loss and the weights
     # stay float32, so the update dG is rounded to bfloat16 but never accumulated in it
-    bf16 = precision_checked(cfg.get("precision", "fp32")) == "bf16"
+    bf16 = precision_of(cfg.get("precision", "fp32")) == "bf16"
     for batch in train_set.batches(cfg.batch_size, gen, redrawn):
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
             loss = training_loss(model, batch, cfg, gen)
@@ -253,7 +284,9 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
     ema_decay_checked(cfg.optim.get("ema_decay", 0.0))
     weight_decay_checked(cfg.optim.weight_decay)
     schedule_checked(cfg.optim.get("schedule", "step"))
-    precision_checked(cfg.get("precision", "fp32"))
+    precision = precision_of(cfg.get("precision", "fp32"))
+    if cfg.get("precision", "fp32") == "auto":
+        log.info("precision auto: %s (native bfloat16 %s)", precision, "found" if precision == "bf16" else "absent")
     gradient_carry(cfg)
     n_probe = integer_in(cfg.get("train_probe", 0), "train_probe", 0, 10**6,
                          "training designs whose rollout error is logged every epoch; 0 = none")

@@ -414,6 +414,42 @@ def test_the_teacher_term_adds_the_one_step_loss_from_every_fea_frame():
     torch.testing.assert_close(taught, rollout + 0.5 * one_step)
 
 
+@pytest.mark.parametrize("stress_input", [True, False])
+def test_noise_every_step_displaces_the_state_each_later_step_starts_from_on_the_columns_read(stress_input):
+    """noise_every_step: the state step k > 0 starts from is the one step k - 1 reached plus fresh noise of
+    noise_std x the column's step std on the columns the network reads (stress only with stress_input); without
+    it, exactly the state reached; with noise_std 0, the plain loss."""
+    from learn.metrics import multistep_loss
+    data = GraphSet.build([extract(synthetic_episode(3, 3, 5, 3, 3, 4, seed=s)) for s in range(2)])
+    model = Simulator.fit({"core": "double_gn", "latent": 8, "widths": [16], "stress_input": stress_input},
+                          data.joint_state, data.beam_state, data.static)
+    seen = []
+    plain_step = model.step
+
+    def recorded(j, b, static, t):
+        out = plain_step(j, b, static, t)
+        seen.append(((j, b), out))
+        return out
+
+    model.step = recorded
+    with torch.no_grad():
+        clean = multistep_loss(model, data, 3, 0.0, 0.1)
+        torch.testing.assert_close(multistep_loss(model, data, 3, 0.0, 0.1, noise_every_step=True), clean)
+        for every in (False, True):
+            seen.clear()
+            multistep_loss(model, data, 3, 0.5, 0.1, torch.Generator().manual_seed(0), noise_every_step=every)
+            for (inputs, _), (_, reached) in zip(seen[1:], seen[:-1]):
+                for x, y, std, spec in zip(inputs, reached, (model.joint_delta.std, model.beam_delta.std),
+                                           (JOINT, BEAM)):
+                    d = (x - y) / std
+                    if not every:
+                        assert torch.equal(x, y)
+                        continue
+                    geometry, stress = d[..., spec.geometry_slice], d[..., spec.stress_slice]
+                    assert 0.4 < geometry.std() < 0.6 and abs(geometry.mean()) < 0.1
+                    assert (stress.abs().max() > 0) == stress_input
+
+
 def test_the_final_weight_adds_the_final_frames_error_of_the_unroll_that_reaches_it():
     """final_weight w: the multi-step loss plus w x the state columns' error at the episode's last frame, computed
     here from an independent unroll of the last start frame (learn.rollout.unroll) with the same column weights."""
@@ -445,6 +481,7 @@ def test_an_unknown_loss_geometry_is_refused(data_dir, tmp_path):
                                               r"teacher_weight=True: must be a number in \[0, 100\]"),
                                              ("final_weight=-0.5",
                                               r"final_weight=-0.5: must be a number in \[0, 100\]"),
+                                             ("noise_every_step=2", "noise_every_step=2: must be true or false"),
                                              ("train_probe=-1", r"train_probe=-1: must be an integer in \[0, "),
                                              ("rollout_gradient=1.5", r"rollout_gradient=1.5: must be through \| stop"),
                                              ("rollout_gradient=back", r"rollout_gradient='back': must be through")])
@@ -637,9 +674,22 @@ def test_bf16_training_rounds_the_network_not_the_states_and_a_bad_precision_is_
             j, b = model.step(batch.joint_state[:1], batch.beam_state[:1], batch.static, batch.t[:1])
     assert rounded.dtype == j.dtype == b.dtype == torch.float32
     assert float(rounded) == pytest.approx(exact, rel=1e-2)
-    with pytest.raises(ValueError, match=re.escape("precision='fp16': must be one of fp32 | bf16")):
+    with pytest.raises(ValueError, match=re.escape("precision='fp16': must be one of fp32 | bf16 | auto")):
         train(cfg_for("train", tiny(data_dir, tmp_path / "bad", "epochs=1", "precision=fp16")))
     assert not (tmp_path / "bad" / "last.pt").exists()
+
+
+def test_precision_auto_is_bf16_only_where_the_cpu_multiplies_bfloat16_natively(tmp_path):
+    from learn.train import cpu_flags, precision_of
+    assert precision_of("auto", {"avx2", "avx512f", "avx512_bf16"}) == "bf16"
+    assert precision_of("auto", {"avx2", "amx_bf16"}) == "bf16"
+    assert precision_of("auto", {"avx2", "avx512f"}) == "fp32"  # AVX512 without BF16: still emulated
+    assert precision_of("bf16", set()) == "bf16" and precision_of("fp32", {"avx512_bf16"}) == "fp32"
+    info = tmp_path / "cpuinfo"
+    info.write_text("processor\t: 0\nflags\t\t: fpu sse2 avx2\n\nprocessor\t: 1\nflags\t\t: fpu sse2 avx2\n")
+    assert cpu_flags(str(info)) == {"fpu", "sse2", "avx2"} and cpu_flags(str(tmp_path / "none")) == set()
+    with pytest.raises(ValueError, match=re.escape("precision='fp16': must be one of fp32 | bf16 | auto")):
+        precision_of("fp16")
 
 
 def test_curves_of_runs_write_a_table_and_a_plot(trained, tmp_path):
