@@ -55,14 +55,29 @@ def split_names(features: list[EpisodeFeatures], fractions: dict, seed: int) -> 
     return out
 
 
-def extend_split(split: dict[str, list[str]], names: Iterable[str]) -> dict[str, list[str]]:
+SPLIT_MISSING = ("error", "drop")  # what extend_split does with listed episodes the data lacks
+
+
+def split_missing_checked(value) -> str:
+    """conf/train.yaml split_missing: one of SPLIT_MISSING, else an error naming the key."""
+    if value not in SPLIT_MISSING:
+        raise ValueError(f"split_missing={value!r}: must be {' | '.join(SPLIT_MISSING)} (held-out episodes of "
+                         "split_from that the data lack: an error, or left out)")
+    return value
+
+
+def extend_split(split: dict[str, list[str]], names: Iterable[str], missing: str = "error") -> dict[str, list[str]]:
     """An earlier run's split (or a split file's) with the data's episode `names` it does not list added to train:
     a grown dataset keeps its held-out designs, so runs on the old and the new data are evaluated on the same ones.
-    Episodes of the old split that are gone are an error."""
+    Episodes of the old split that are gone are an error, or with missing="drop" left out (the first N episodes of a
+    dataset still being generated, held out as the pinned split holds them out)."""
+    split_missing_checked(missing)
     names = set(names)
-    missing = sorted(n for s in SPLITS for n in split.get(s, []) if n not in names)
-    if missing:
-        raise FileNotFoundError(f"split_from lists episodes that are not in the data: {missing[:5]}")
+    gone = sorted(n for s in SPLITS for n in split.get(s, []) if n not in names)
+    if gone and missing == "error":
+        raise FileNotFoundError(f"split_from lists episodes that are not in the data: {gone[:5]} (split_missing=drop "
+                                "leaves them out)")
+    split = {s: [n for n in split.get(s, []) if n in names] for s in SPLITS}
     listed = {n for s in SPLITS for n in split.get(s, [])}
     out = {s: list(split.get(s, [])) for s in SPLITS}
     out["train"] += sorted(names - listed)

@@ -17,7 +17,7 @@ from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from learn import checkpoint
 from learn.conditions import envelope
 from learn.dataset import (GraphSet, TurnedSet, augment, augment_angles, episode_paths, extend_split, load_features,
-                           split_names)
+                           split_missing_checked, split_names)
 from learn.gn import dropout_checked, fraction_checked
 from learn.metrics import multistep_loss, rollout_errors
 from learn.model import (Simulator, integer_in, rollout_lattice_turns_checked, rollout_rotations_checked,
@@ -288,6 +288,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
     if cfg.get("precision", "fp32") == "auto":
         log.info("precision auto: %s (native bfloat16 %s)", precision, "found" if precision == "bf16" else "absent")
     gradient_carry(cfg)
+    split_missing_checked(cfg.get("split_missing", "error"))
     n_probe = integer_in(cfg.get("train_probe", 0), "train_probe", 0, 10**6,
                          "training designs whose rollout error is logged every epoch; 0 = none")
     loss_terms(cfg)  # its weights, and the teacher's below, checked before any data are read
@@ -305,7 +306,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
         split = resumed["split"]
     elif cfg.get("split_from") or init:  # keep an earlier run's held-out designs; new episodes join train
         split = extend_split(checkpoint.split_of(cfg.split_from) if cfg.get("split_from") else init["split"],
-                             by_name)
+                             by_name, cfg.get("split_missing", "error"))
     else:
         split = split_names(features, cfg.split, cfg.seed)
     missing = [n for s in split.values() for n in s if n not in by_name]

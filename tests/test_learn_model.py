@@ -47,6 +47,13 @@ def test_extend_split_keeps_held_out_episodes_and_adds_new_ones_to_train(feature
     assert sorted(new["train"]) == sorted(old["train"] + [f.name for f in features[4:]])
     with pytest.raises(FileNotFoundError, match="not in the data"):
         extend_split(old, [f.name for f in features[1:]])
+    held = old["val"][0]  # split_missing=drop: a held-out episode the data lack is left out, the rest kept
+    present = [f.name for f in features if f.name != held]
+    dropped = extend_split(old, present, "drop")
+    assert held not in sum(dropped.values(), []) and dropped["test"] == old["test"]
+    assert sorted(sum(dropped.values(), [])) == sorted(present)
+    with pytest.raises(ValueError, match="split_missing='skip': must be error | drop"):
+        extend_split(old, present, "skip")
 
 
 def test_pca_keeps_a_rare_flag_column():

@@ -660,6 +660,25 @@ def test_the_medium_experiment_is_the_reference_on_the_first_260_episodes_in_one
     assert medium["train_designs"] == 260 - len(indices)
 
 
+def test_the_small_experiment_is_the_medium_one_on_the_episodes_generated_so_far(data_dir, tmp_path):
+    """conf/experiment/small.yaml: the medium recipe with half the rotations on whatever part of data/ds_default
+    exists, the pinned held-out designs among it held out and the absent ones left out (split_missing=drop)."""
+    small = OmegaConf.to_container(cfg_for("train", ["+experiment=small"]))
+    medium = OmegaConf.to_container(cfg_for("train", ["+experiment=medium"]))
+    assert {k for k in medium if small[k] != medium[k]} == {"run_dir", "split_missing", "train_designs", "rotations"}
+    assert small["split_missing"] == "drop" and small["train_designs"] is None and small["rotations"] == 5
+    names = sorted(p.name for p in Path(data_dir).glob("*.h5"))
+    split_file = tmp_path / "held_out.yaml"  # one of the data's episodes held out, one that is not generated
+    split_file.write_text(f"val: [{names[0]}, episode_99999.h5]\ntest: [{names[1]}]\n")
+    cfg = cfg_for("train", tiny(data_dir, tmp_path / "run", "epochs=1", f"split_from={split_file}",
+                                "split_missing=drop"))
+    train(cfg)
+    split = checkpoint.load(tmp_path / "run" / "best.pt")["split"]
+    assert split["val"] == [names[0]] and split["test"] == [names[1]] and sorted(split["train"]) == names[2:]
+    with pytest.raises(FileNotFoundError, match="split_missing=drop leaves them out"):
+        train(cfg_for("train", tiny(data_dir, tmp_path / "strict", "epochs=1", f"split_from={split_file}")))
+
+
 def test_bf16_training_rounds_the_network_not_the_states_and_a_bad_precision_is_refused(trained, data_dir, tmp_path):
     """precision=bf16 autocasts the loss's forward pass: the network's matrix products are bfloat16 (8 bits of
     mantissa), but the states it adds dG to stay float32, and so does the loss, which moves by well under 1 % over
