@@ -81,8 +81,14 @@ def read_fingerprints(path: str | os.PathLike) -> dict[str, dict]:
     return {r["episode"]: r for r in rows}
 
 
-def differences(reference: dict[str, dict], rows: list[dict], tol_mm: float = TOL_MM) -> list[str]:
-    """Every way the rows differ from the reference, as 'episode: field: ours vs reference' (episodes in both)."""
+def differences(reference: dict[str, dict], rows: list[dict], tol_mm: float = TOL_MM,
+                round_off: list[str] | None = None) -> list[str]:
+    """Every way the rows differ from the reference, as 'episode: field: ours vs reference' (episodes in both).
+    A design whose digest differs while its mesh sizes and final shape agree within tol_mm is the same design
+    written with other last bits: the sampler's sin, cos and sqrt round differently on another CPU (numpy's SIMD
+    paths: AVX512 vs AVX2; session 28: 20 of the first 31 episodes, final shapes equal to 1e-4 mm). Such episodes
+    are listed in `round_off` (when given), not as differences; a design that is really another one moves the
+    final shape far beyond the tolerance."""
     if not (tol_mm >= 0 and math.isfinite(tol_mm)):
         raise ValueError(f"tol_mm = {tol_mm}: must be a finite number >= 0 (mm)")
     out = []
@@ -90,13 +96,19 @@ def differences(reference: dict[str, dict], rows: list[dict], tol_mm: float = TO
         ref = reference.get(row["episode"])
         if ref is None:
             continue
+        shape = [f"{row['episode']}: {k}: {row[k]} vs {ref[k]}" for k in COUNTS if int(row[k]) != int(ref[k])]
+        shape += [f"{row['episode']}: {k}: {float(row[k]):.4f} vs {float(ref[k]):.4f} mm (tolerance {tol_mm} mm)"
+                  for k in NUMBERS if not abs(float(row[k]) - float(ref[k])) <= tol_mm]
         if row["design_sha256"] != ref["design_sha256"]:
-            out.append(f"{row['episode']}: design_sha256: another design ({row['design_sha256'][:12]} vs "
-                       f"{ref['design_sha256'][:12]}): the sampler or its seed changed")
+            digests = f"({row['design_sha256'][:12]} vs {ref['design_sha256'][:12]})"
+            if shape:
+                out.append(f"{row['episode']}: design_sha256: another design {digests}: the sampler or its seed "
+                           "changed")
+            elif round_off is not None:
+                round_off.append(f"{row['episode']}: design_sha256 {digests} differs, the final shape agrees within "
+                                 f"{tol_mm} mm: the design's last bits (CPU round-off)")
             continue
-        out += [f"{row['episode']}: {k}: {row[k]} vs {ref[k]}" for k in COUNTS if int(row[k]) != int(ref[k])]
-        out += [f"{row['episode']}: {k}: {float(row[k]):.4f} vs {float(ref[k]):.4f} mm (tolerance {tol_mm} mm)"
-                for k in NUMBERS if not abs(float(row[k]) - float(ref[k])) <= tol_mm]
+        out += shape
     return out
 
 
@@ -122,12 +134,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{len(rows)} fingerprints -> {args.write}")
         return 0
     reference = read_fingerprints(args.check)
-    problems = differences(reference, rows, args.tol_mm)
+    round_off: list[str] = []
+    problems = differences(reference, rows, args.tol_mm, round_off)
+    for p in round_off:
+        print(f"ROUND-OFF {p}")
     for p in problems:
         print(f"DIFFERS {p}")
     both = sum(r["episode"] in reference for r in rows)
-    print(f"{both} episodes in both: {len({p.split(':')[0] for p in problems})} differ; {len(rows) - both} only "
-          f"here, {len(reference) - both} only in {args.check}", file=sys.stderr)
+    print(f"{both} episodes in both: {len({p.split(':')[0] for p in problems})} differ ({len(round_off)} more equal "
+          f"but for the design's last bits); {len(rows) - both} only here, {len(reference) - both} only in "
+          f"{args.check}", file=sys.stderr)
     return 1 if problems else 0
 
 

@@ -59,6 +59,22 @@ def test_another_design_is_named(data_dir, tmp_path):
     assert len(problems) == 1 and problems[0].startswith("episode_00000.h5: design_sha256: another design")
 
 
+def test_a_design_written_with_other_last_bits_and_the_same_shape_is_round_off_not_a_difference(data_dir, tmp_path,
+                                                                                                capsys):
+    """Another CPU's sampler rounds a coordinate's last bit otherwise: another digest, the same FEA answer."""
+    ref = tmp_path / "fp.csv"
+    main([str(data_dir), "--write", str(ref)])
+    ep = synthetic_episode(seed=0)
+    design = json.loads(ep.design_json)
+    x = design["joints"][0]["xy"][0]
+    design["joints"][0]["xy"][0] = float(np.nextafter(x, np.inf))  # one ulp
+    write_episode(data_dir / "episode_00000.h5", ep.replace(design_json=json.dumps(design)))
+    capsys.readouterr()
+    assert main([str(data_dir), "--check", str(ref)]) == 0
+    out = capsys.readouterr().out
+    assert "ROUND-OFF episode_00000.h5: design_sha256" in out and "DIFFERS" not in out
+
+
 def test_partial_data_is_checked_as_far_as_it_goes(data_dir, tmp_path):
     ref = tmp_path / "fp.csv"
     main([str(data_dir), "--write", str(ref)])
