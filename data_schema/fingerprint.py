@@ -86,7 +86,7 @@ def differences(reference: dict[str, dict], rows: list[dict], tol_mm: float = TO
     """Every way the rows differ from the reference, as 'episode: field: ours vs reference' (episodes in both).
     A design whose digest differs while its mesh sizes and final shape agree within tol_mm is the same design
     written with other last bits: the sampler's sin, cos and sqrt round differently on another CPU (numpy's SIMD
-    paths: AVX512 vs AVX2; session 28: 20 of the first 31 episodes, final shapes equal to 1e-4 mm). Such episodes
+    paths: AVX512 vs AVX2; session 28: 72 of the first 100 episodes, final shapes equal to 1e-4 mm). Such episodes
     are listed in `round_off` (when given), not as differences; a design that is really another one moves the
     final shape far beyond the tolerance."""
     if not (tol_mm >= 0 and math.isfinite(tol_mm)):

@@ -285,8 +285,9 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
     weight_decay_checked(cfg.optim.weight_decay)
     schedule_checked(cfg.optim.get("schedule", "step"))
     precision = precision_of(cfg.get("precision", "fp32"))
-    if cfg.get("precision", "fp32") == "auto":
+    if cfg.get("precision", "fp32") == "auto":  # the checkpoint's config records what was used
         log.info("precision auto: %s (native bfloat16 %s)", precision, "found" if precision == "bf16" else "absent")
+        cfg.precision = precision
     gradient_carry(cfg)
     split_missing_checked(cfg.get("split_missing", "error"))
     n_probe = integer_in(cfg.get("train_probe", 0), "train_probe", 0, 10**6,

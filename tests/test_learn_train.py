@@ -663,6 +663,7 @@ def test_the_medium_experiment_is_the_reference_on_the_first_260_episodes_in_one
 def test_the_small_experiment_is_the_medium_one_on_the_episodes_generated_so_far(data_dir, tmp_path):
     """conf/experiment/small.yaml: the medium recipe with half the rotations on whatever part of data/ds_default
     exists, the pinned held-out designs among it held out and the absent ones left out (split_missing=drop)."""
+    from learn.train import precision_of
     small = OmegaConf.to_container(cfg_for("train", ["+experiment=small"]))
     medium = OmegaConf.to_container(cfg_for("train", ["+experiment=medium"]))
     assert {k for k in medium if small[k] != medium[k]} == {"run_dir", "split_missing", "train_designs", "rotations"}
@@ -675,6 +676,9 @@ def test_the_small_experiment_is_the_medium_one_on_the_episodes_generated_so_far
     train(cfg)
     split = checkpoint.load(tmp_path / "run" / "best.pt")["split"]
     assert split["val"] == [names[0]] and split["test"] == [names[1]] and sorted(split["train"]) == names[2:]
+    auto = cfg_for("train", tiny(data_dir, tmp_path / "auto", "epochs=1", "precision=auto"))
+    train(auto)  # the checkpoint records the precision auto resolved to on this CPU
+    assert checkpoint.load(tmp_path / "auto" / "best.pt")["config"]["precision"] == precision_of("auto")
     with pytest.raises(FileNotFoundError, match="split_missing=drop leaves them out"):
         train(cfg_for("train", tiny(data_dir, tmp_path / "strict", "epochs=1", f"split_from={split_file}")))
 
