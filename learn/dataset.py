@@ -77,10 +77,8 @@ def extend_split(split: dict[str, list[str]], names: Iterable[str], missing: str
     if gone and missing == "error":
         raise FileNotFoundError(f"split_from lists episodes that are not in the data: {gone[:5]} (split_missing=drop "
                                 "leaves them out)")
-    split = {s: [n for n in split.get(s, []) if n in names] for s in SPLITS}
-    listed = {n for s in SPLITS for n in split.get(s, [])}
-    out = {s: list(split.get(s, [])) for s in SPLITS}
-    out["train"] += sorted(names - listed)
+    out = {s: [n for n in split.get(s, []) if n in names] for s in SPLITS}
+    out["train"] += sorted(names - {n for s in SPLITS for n in out[s]})
     return out
 
 

@@ -68,8 +68,8 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
     columns = lambda ej, eb: (wj * ej ** 2).mean() + (wb * eb ** 2).mean()  # noqa: E731
     every = noise_every_step and noise_std > 0 and not model.direct
     if every:  # in raw units: the step std of each column the network reads, 0 on the others
-        read = model.args.get("stress_input", True)
-        nj, nb = (noise_std * delta.std * read_columns(spec, read)
+        read = float(model.args.get("stress_input", True))  # the stress columns' weight: 1 where they are read
+        nj, nb = (noise_std * delta.std * column_weights(spec, read)
                   for delta, spec in ((model.joint_delta, JOINT), (model.beam_delta, BEAM)))
     loss = torch.zeros(())
     for k in range(h):
@@ -98,15 +98,6 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
     if final_weight > 0:  # the last step from the last start frame S-1 lands on the episode's final frame F-1
         loss = loss + final_weight * columns(ej[-1], eb[-1])
     return loss
-
-
-def read_columns(spec, stress: bool) -> torch.Tensor:
-    """[state_size] 1 on the state columns a network reads (geometry; stress when `stress`), 0 elsewhere."""
-    mask = torch.zeros(spec.state_size)
-    mask[spec.geometry_slice] = 1.0
-    if stress:
-        mask[spec.stress_slice] = 1.0
-    return mask
 
 
 def point_owner(batch: GraphSet) -> np.ndarray:

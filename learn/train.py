@@ -31,9 +31,7 @@ LAST, BEST = "last.pt", "best.pt"
 def augmented(features: list, cfg, rotations: int | None = None) -> list:
     """The training designs as conf/train.yaml augments them (learn.dataset.augment): rotations (cfg.rotations
     unless given), mirror, lattice_turns."""
-    if not isinstance(cfg.mirror, bool):
-        raise ValueError(f"mirror={cfg.mirror!r}: must be true or false")
-    return augment(features, cfg.rotations if rotations is None else rotations, cfg.seed, cfg.mirror,
+    return augment(features, cfg.rotations if rotations is None else rotations, cfg.seed, flag_checked(cfg, "mirror"),
                    cfg.get("lattice_turns", 1))
 
 
@@ -43,9 +41,7 @@ def training_sets(designs: list, cfg) -> tuple[GraphSet | TurnedSet, Callable]:
     labelled copies once, turned per batch by the angles augment would draw (TurnedSet: the same batches, 1/rotations
     of the memory); the fit turns them a block at a time. rotations_redraw: the labelled copies once, turned per
     batch by new angles (the fit: the angles augment draws)."""
-    stored = cfg.get("rotations_stored", False)
-    if not isinstance(stored, bool):
-        raise ValueError(f"rotations_stored={stored!r}: must be true or false")
+    stored = flag_checked(cfg, "rotations_stored")
     redraw = cfg.get("rotations_redraw", False)
     if stored or cfg.rotations <= 1:
         fit_set = GraphSet.build(augmented(designs, cfg))
