@@ -22,7 +22,7 @@ from learn.evaluate import design_statistics, finite_or_null, markdown
 log = logging.getLogger(__name__)
 WEIGHTED = ("rollout_ms_per_design", "rollout_ms_per_design_eager", "rollout_ms_per_design_batched",
             "fea_s_per_episode")
-SAME = ("checkpoint", "model", "threads", "steps", "welded")
+SAME = ("checkpoint", "model", "threads", "steps", "welded", "validity_thresholds")
 ABSENT = {"welded": False}  # what a report written before the key was added measured
 
 
@@ -50,8 +50,11 @@ def combine(reports: list[dict]) -> dict:
     weights = np.array([r["n_designs"] for r in reports], dtype=float)
     mean = lambda key: float(np.average([np.nan if r.get(key) is None else r[key] for r in reports],  # noqa: E731
                                         weights=weights))
+    flag = {json.dumps(r.get("validity_measured", {}).get("flag_error_rel")) for r in reports}
+    if len(flag) > 1:
+        raise ValueError(f"reports differ in flag_error_rel ({sorted(flag)}): evaluate them with the same one")
     out = {
-        **design_statistics(designs),
+        **design_statistics(designs, reports[0].get("validity_measured", {}).get("flag_error_rel")),
         **{key: mean(key) for key in WEIGHTED},
         "n_invalid": int(sum(not d["valid"] for d in designs)),
         **{key: reports[0].get(key, ABSENT.get(key)) for key in SAME},

@@ -69,9 +69,32 @@ def by_frame(designs: list[dict]) -> dict | None:
             "fea_step_rel_median": np.median(steps, 0).tolist()}
 
 
-def design_statistics(designs: list[dict]) -> dict:
+# what the validity check reads, per design (learn.validity.Verdict fields): how well each ranks designs by error
+VALIDITY_INDICATORS = ("max_dislocation_rel", "out_of_range_fraction", "max_spread_rel")
+
+
+def validity_measured(designs: list[dict], flag_error_rel: float) -> dict:
+    """How well the validity check separates bad answers (max error > flag_error_rel of the design size) from the
+    rest: of the bad designs how many it flags (caught), of the others how many it flags needlessly (false_flags),
+    the error distributions of the passed and the flagged, and each indicator's Spearman rank correlation with the
+    error (1: it orders the designs exactly as the error does)."""
+    errors = np.array([d["max_rel_error"] for d in designs], dtype=np.float64)
+    flagged = np.array([not d["valid"] for d in designs], dtype=bool)
+    bad = errors > flag_error_rel
+    out = {"flag_error_rel": float(flag_error_rel), "n_bad": int(bad.sum()), "n_flagged": int(flagged.sum()),
+           "caught": int((bad & flagged).sum()), "false_flags": int((~bad & flagged).sum()),
+           "passed": distribution(errors[~flagged]), "flagged": distribution(errors[flagged]), "spearman": {}}
+    for key in VALIDITY_INDICATORS:
+        values = [d.get("validity", {}).get(key) for d in designs]
+        if designs and all(v is not None for v in values):
+            out["spearman"][key] = rank_correlation(values, errors)
+    return out
+
+
+def design_statistics(designs: list[dict], flag_error_rel: float | None = None) -> dict:
     """The error distributions of a report over its per-design entries (overall and per family for the errors);
-    for an ensemble also its members' spread and how well the spread ranks the designs by error."""
+    for an ensemble also its members' spread and how well the spread ranks the designs by error; with
+    flag_error_rel, how well the validity check finds the designs worse than that (validity_measured)."""
     groups = {name: [label(d) for d in designs] for name, label in GROUPINGS.items()}
     out = {
         "n_designs": len(designs),
@@ -87,6 +110,8 @@ def design_statistics(designs: list[dict]) -> dict:
     frames = by_frame(designs)
     if frames is not None:
         out["by_frame"] = frames
+    if flag_error_rel is not None:
+        out["validity_measured"] = validity_measured(designs, flag_error_rel)
     return out
 
 
@@ -146,16 +171,26 @@ def timings(model: Simulator, features: list[EpisodeFeatures], repeats: int) -> 
     }
 
 
+def flag_error_rel_checked(value) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < 1:
+        raise ValueError(f"flag_error_rel={value!r}: allowed is a fraction of the design size in (0, 1), e.g. 0.10")
+    return float(value)
+
+
 def split_paths(split: str, stored: dict[str, list[str]], data_dir: Path, source: str) -> list[Path]:
-    """Episode paths of `split`: 'all' (every *.h5 in data_dir, e.g. designs generated apart from training), one
-    split stored in the checkpoint, or several joined by '+' (val+test: every design the weights never saw)."""
+    """Episode paths of `split`: 'all' (every *.h5 in data_dir, e.g. designs generated apart from training),
+    'unseen' (every *.h5 in data_dir the checkpoint did not train on: its val and test designs and any generated
+    since), one split stored in the checkpoint, or several joined by '+' (val+test: the pinned held-out designs)."""
     if split == "all":
         return episode_paths(data_dir)
+    if split == "unseen":
+        trained_on = set(stored.get("train", []))
+        return [p for p in episode_paths(data_dir) if p.name not in trained_on]
     names = str(split).split("+")
     unknown = [n for n in names if n not in stored]
     if unknown:
         raise ValueError(f"split={split!r}: allowed are {sorted(stored)} (stored in {source}), several of them "
-                         "joined by '+', or 'all' (every *.h5 in data_dir)")
+                         "joined by '+', 'all' (every *.h5 in data_dir) or 'unseen' (those not trained on)")
     return [data_dir / e for n in dict.fromkeys(names) for e in stored[n]]
 
 
@@ -199,7 +234,7 @@ def evaluate(cfg: DictConfig) -> dict:
     fea_s = float(np.nanmean([f.fea_seconds for f in features])) if any(
         np.isfinite(f.fea_seconds) for f in features) else float("nan")
     report = {
-        **design_statistics(designs),
+        **design_statistics(designs, flag_error_rel_checked(cfg.flag_error_rel)),
         "rollout_ms_per_design": 1e3 * rollout_s,
         "rollout_ms_per_design_eager": 1e3 * times["eager"],
         "rollout_ms_per_design_batched": 1e3 * batched_s,
@@ -266,6 +301,13 @@ def markdown(report: dict, with_designs: bool = True) -> str:
         f"speed-up {report['speedup']:.3g}x (batched {report['speedup_batched']:.3g}x); "
         f"{report['n_invalid']} rollouts flagged invalid",
     ]
+    if "validity_measured" in report:
+        v = report["validity_measured"]
+        rho = ", ".join(f"{k} {x:.2f}" for k, x in v["spearman"].items())
+        lines += ["", f"Validity check against max error > {_pct(v['flag_error_rel'])}: {v['caught']} of {v['n_bad']} "
+                  f"such designs flagged, {v['false_flags']} of {report['n_designs'] - v['n_bad']} others flagged "
+                  f"needlessly; passed designs {_pct(v['passed']['median'])} median, {_pct(v['passed']['p95'])} p95; "
+                  f"flagged {_pct(v['flagged']['median'])} median. Spearman with the error: {rho}"]
     if report.get("timing_busy"):
         lines += ["", f"Timed on a busy machine (1-minute load {report['load_average']:.1f} on {report['cpus']} "
                   "CPUs): the times are upper bounds and the speed-ups lower bounds; time on an idle machine with "

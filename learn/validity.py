@@ -2,7 +2,9 @@
 
 Symptoms, all measurable without FEA:
 - dislocation: a beam's end cross-section and its joint each rebuild the shared interface nodes; when the two
-  predictions drift apart the blocks no longer form one solid;
+  predictions drift apart the blocks no longer form one solid. It is a certificate as well as a symptom: two
+  predictions of one node a distance d apart cannot both lie within d/2 of where the node really is, so the answer's
+  max error is at least half the dislocation (`error_lower_bound_rel`), whatever the FEA would say;
 - out of range: a block's PCA coefficients leave the range seen in training (widened by a margin), so the
   networks extrapolate;
 - conditions: the episode's material, residual stress, body force, mesh or design size lie outside those of the
@@ -10,6 +12,12 @@ Symptoms, all measurable without FEA:
 - spread (ensembles only, learn.ensemble): the members disagree about a point by more than a fraction of the
   design size (off by default: measured in session 10, the spread of two seeds ranks designs by error no better
   than the disagreement of one network's symmetric copies, Spearman 0.37; docs/learned_simulator.md "Ensembles").
+
+The dislocation and spread are judged relative to the design size, as the error is. The thresholds
+(conf/validity/default.yaml) are calibrated against FEA on held-out designs: learn.evaluate measures, on every
+report, how many designs worse than `flag_error_rel` the check flags and how many better ones it flags needlessly
+(`validity_measured`), and scripts/validity_calibration.py picks the thresholds that best separate the two from such
+reports (docs/learned_simulator.md, session 29).
 """
 from __future__ import annotations
 
@@ -30,6 +38,8 @@ class Verdict:
     valid: bool
     reasons: list[str] = field(default_factory=list)
     max_dislocation_mm: float = 0.0  # largest distance between two predictions of one interface node
+    max_dislocation_rel: float = 0.0  # the same / design size
+    error_lower_bound_rel: float = 0.0  # half of it: the answer's max error / design size is at least this
     dislocation_per_frame: list[float] = field(default_factory=list)
     out_of_range_fraction: float = 0.0  # of (frame, block) pairs with a coefficient outside the training range
     first_bad_frame: int | None = None
@@ -68,10 +78,11 @@ def out_of_range(model: Simulator | Ensemble, r: Rollout, margin: float) -> np.n
     return torch.cat([joint_bad, beam_bad], 1).float().mean(1).numpy()
 
 
-def check(model: Simulator | Ensemble, r: Rollout, max_dislocation_mm: float = 1.0, range_margin: float = 0.25,
-          max_out_of_range: float = 0.0, envelope: dict | None = None, condition_tolerance: float = REL_TOL,
+def check(model: Simulator | Ensemble, r: Rollout, max_dislocation_rel: float = 0.05, range_margin: float = 0.0,
+          max_out_of_range: float = 0.5, envelope: dict | None = None, condition_tolerance: float = REL_TOL,
           max_spread_rel: float | None = None) -> Verdict:
-    """Verdict on one rollout; invalid when any frame breaks a threshold, any value is not finite, or the episode's
+    """Verdict on one rollout; invalid when any frame breaks a threshold (the dislocation and spread as fractions
+    of the design size, the out-of-range share as a fraction of the blocks), any value is not finite, or the episode's
     conditions (material, residual stress, body force, mesh, design size) lie outside the training `envelope`
     (stored in the checkpoint by learn.train) by more than `condition_tolerance`, relative. An ensemble's rollout
     (r.member_points) also reports its members' spread, and is invalid where it exceeds `max_spread_rel` of the
@@ -80,9 +91,10 @@ def check(model: Simulator | Ensemble, r: Rollout, max_dislocation_mm: float = 1
                for why in outside(r.features.conditions, envelope or {}, condition_tolerance)]
     off_conditions = bool(reasons)
     finite = np.isfinite(r.points).all(axis=(1, 2))
+    size = r.features.design_size
     disl = np.where(finite, dislocation(r), np.inf)
     oor = np.where(finite, out_of_range(model, r, range_margin), 1.0)
-    bad = (disl > max_dislocation_mm) | (oor > max_out_of_range) | ~finite
+    bad = (disl > max_dislocation_rel * size) | (oor > max_out_of_range) | ~finite
     spread = None
     if r.member_points is not None:
         spread = np.where(finite, member_spread(r.member_points) / r.features.design_size, np.inf)
@@ -94,15 +106,17 @@ def check(model: Simulator | Ensemble, r: Rollout, max_dislocation_mm: float = 1
                                f"{k} (limit {100 * max_spread_rel:.3g} %)")
     if not finite.all():
         reasons.append(f"non-finite points from frame {int(np.argmin(finite))}")
-    if (disl > max_dislocation_mm).any():
-        k = int(np.argmax(disl > max_dislocation_mm))
-        reasons.append(f"beam/joint faces dislocated by {disl[k]:.3g} mm at frame {k} "
-                       f"(limit {max_dislocation_mm} mm)")
+    if (disl > max_dislocation_rel * size).any():
+        k = int(np.argmax(disl > max_dislocation_rel * size))
+        reasons.append(f"beam/joint faces dislocated by {disl[k]:.3g} mm = {100 * disl[k] / size:.3g} % of the design "
+                       f"size at frame {k} (limit {100 * max_dislocation_rel:.3g} %): the max error is at least "
+                       f"{100 * disl[k] / size / 2:.3g} %")
     if (oor > max_out_of_range).any():
         k = int(np.argmax(oor > max_out_of_range))
-        reasons.append(f"{100 * oor[k]:.0f}% of blocks outside the training feature range at frame {k} "
-                       f"(margin {range_margin} of the range)")
+        reasons.append(f"{100 * oor[k]:.0f} % of blocks outside the training feature range at frame {k} "
+                       f"(limit {100 * max_out_of_range:.3g} %; margin {range_margin} of the range)")
     return Verdict(valid=not bad.any() and not off_conditions, reasons=reasons, max_dislocation_mm=float(disl.max()),
+                   max_dislocation_rel=float(disl.max() / size), error_lower_bound_rel=float(disl.max() / size / 2),
                    dislocation_per_frame=[float(d) for d in disl], out_of_range_fraction=float(oor.max()),
                    first_bad_frame=0 if off_conditions else int(np.argmax(bad)) if bad.any() else None,
                    max_spread_rel=None if spread is None else float(spread.max()),

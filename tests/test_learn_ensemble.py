@@ -39,15 +39,15 @@ def test_the_answer_is_the_mean_of_the_members_answers_and_their_spread_is_repor
     parts = [rollout(m, ep, steps=10) for m in singles]
     assert np.allclose(r.joint_states, np.mean([p.joint_states for p in parts], axis=0), atol=1e-5)
     assert np.allclose(r.member_points, np.stack([p.points for p in parts]), atol=1e-4)
-    verdict = check(model, r, max_dislocation_mm=1e9, range_margin=1e9)
+    verdict = check(model, r, max_dislocation_rel=1e9, range_margin=1e9)
     by_hand = np.linalg.norm(r.member_points - r.member_points.mean(0), axis=-1).max(axis=(0, 2))
     assert np.allclose(verdict.spread_per_frame, by_hand / ep_size(r)) and verdict.max_spread_rel > 0
     assert verdict.spread_per_frame[0] == pytest.approx(0.0, abs=1e-7)  # frame 0 is the design for every member
-    strict = check(model, r, max_dislocation_mm=1e9, range_margin=1e9, max_spread_rel=verdict.max_spread_rel / 2)
+    strict = check(model, r, max_dislocation_rel=1e9, range_margin=1e9, max_spread_rel=verdict.max_spread_rel / 2)
     assert not strict.valid and "members disagree" in " ".join(strict.reasons)
-    assert check(singles[0], parts[0], max_dislocation_mm=1e9, range_margin=1e9).max_spread_rel is None
+    assert check(singles[0], parts[0], max_dislocation_rel=1e9, range_margin=1e9).max_spread_rel is None
     twins, _ = ensemble.load([members[0], members[0]])  # one network twice: no disagreement
-    assert check(twins, rollout(twins, ep, steps=10), max_dislocation_mm=1e9, range_margin=1e9).max_spread_rel == 0
+    assert check(twins, rollout(twins, ep, steps=10), max_dislocation_rel=1e9, range_margin=1e9).max_spread_rel == 0
 
 
 def ep_size(r) -> float:

@@ -136,7 +136,8 @@ def test_validity_passes_a_clean_rollout_and_flags_a_corrupted_one(trained, data
     cfg = ckpt["config"]
     train_items = augment(load_features([data_dir / n for n in ckpt["split"]["train"]]), cfg["rotations"], cfg["seed"])
     clean = reference(train_items[0])  # FEA of a training item: interfaces closed, features in range
-    ok = check(model, clean, max_dislocation_mm=1.0, range_margin=0.25, envelope=ckpt["envelope"])
+    ok = check(model, clean, max_dislocation_rel=1.0 / clean.features.design_size, range_margin=0.25,
+               max_out_of_range=0.0, envelope=ckpt["envelope"])  # within 1 mm: the representation's floor
     assert ok.valid, ok.reasons
     assert ckpt["envelope"]["design.n_joints"] == [9.0, 9.0]  # the training envelope travels with the model
     hotter = {**ckpt["envelope"], "scene.g": [1000.0, 1000.0]}  # trained at another body force
@@ -148,11 +149,17 @@ def test_validity_passes_a_clean_rollout_and_flags_a_corrupted_one(trained, data
     torn.beam_states = torn.beam_states.copy()
     torn.beam_states[6:, 3, BEAM.geometry.slice("start_center")] += np.float32(4.0)  # tear beam 3 off its joint
     torn.points = rebuild_all_points(torn.joint_states.astype(float), torn.beam_states.astype(float)) + torn.origin
-    bad = check(model, torn, max_dislocation_mm=1.0, range_margin=0.25)
+    size = torn.features.design_size
+    bad = check(model, torn, max_dislocation_rel=1.0 / size, range_margin=0.25)  # 1 mm
     assert not bad.valid and bad.first_bad_frame == 6 and "dislocated" in " ".join(bad.reasons)
+    torn_mm = 4.0 * np.sqrt(3.0)  # the start face moved by (4, 4, 4) mm off its joint's; the floor adds < 0.1 mm
+    assert bad.max_dislocation_mm == pytest.approx(torn_mm, abs=0.1)
+    assert bad.max_dislocation_rel == pytest.approx(bad.max_dislocation_mm / size)
+    assert bad.error_lower_bound_rel == pytest.approx(bad.max_dislocation_rel / 2)  # one copy is that far off
+    assert check(model, torn, max_dislocation_rel=(torn_mm + 0.5) / size, range_margin=0.25).valid  # under the limit
     wild = reference(train_items[0])
     wild.joint_states = wild.joint_states * np.float32(50.0)  # a blown-up state, interfaces not checked
-    wild_verdict = check(model, wild, max_dislocation_mm=1e9)
+    wild_verdict = check(model, wild, max_dislocation_rel=1e9)  # every block out of range: > the default half
     assert not wild_verdict.valid and "training feature range" in " ".join(wild_verdict.reasons)
 
 
@@ -200,6 +207,34 @@ def test_evaluate_writes_the_report(trained, tmp_path):
     assert on_disk["load_average"] >= 0 and on_disk["cpus"] >= 1 and isinstance(on_disk["timing_busy"], bool)
     assert (tmp_path / "report.md").exists() and (tmp_path / "error_vs_step.png").stat().st_size > 0
     assert (tmp_path / "overlay_best_median_worst.png").exists()
+    for d in on_disk["designs"]:  # half the dislocation bounds the error of the blocks as predicted from below
+        assert d["validity"]["error_lower_bound_rel"] <= d["max_rel_error"] + 1e-9
+    v = on_disk["validity_measured"]  # the check measured against the error it is meant to catch
+    bad = [d["max_rel_error"] > v["flag_error_rel"] for d in on_disk["designs"]]
+    flagged = [not d["valid"] for d in on_disk["designs"]]
+    assert v["flag_error_rel"] == 0.10 and v["n_bad"] == sum(bad) and v["n_flagged"] == sum(flagged)
+    assert v["caught"] == sum(b and f for b, f in zip(bad, flagged))
+    assert v["false_flags"] == sum(f and not b for b, f in zip(bad, flagged))
+    assert v["passed"]["n"] + v["flagged"]["n"] == on_disk["n_designs"]
+    assert set(v["spearman"]) == {"max_dislocation_rel", "out_of_range_fraction"}  # one model: no spread
+    assert "Validity check against max error > 10.00%" in (tmp_path / "report.md").read_text()
+    with pytest.raises(ValueError, match="flag_error_rel=1.5: allowed is a fraction of the design size in"):
+        evaluate(cfg_for("evaluate", [f"checkpoint={run / 'best.pt'}", f"out_dir={tmp_path / 'x'}",
+                                      "flag_error_rel=1.5"]))
+
+
+def test_validity_measured_counts_the_caught_and_the_needless_flags_and_ranks_the_indicators():
+    from learn.evaluate import validity_measured
+    designs = [{"max_rel_error": e, "valid": ok,
+                "validity": {"max_dislocation_rel": disl, "out_of_range_fraction": oor}}
+               for e, ok, disl, oor in [(0.02, True, 0.01, 0.3), (0.05, True, 0.02, 0.2), (0.08, False, 0.03, 0.1),
+                                        (0.12, True, 0.04, 0.0), (0.20, False, 0.05, 0.6)]]
+    v = validity_measured(designs, 0.10)
+    assert (v["n_bad"], v["n_flagged"], v["caught"], v["false_flags"]) == (2, 2, 1, 1)
+    assert v["passed"]["median"] == pytest.approx(0.05) and v["flagged"]["worst"] == pytest.approx(0.20)
+    assert v["spearman"]["max_dislocation_rel"] == pytest.approx(1.0)  # orders the designs as the error does
+    assert v["spearman"]["out_of_range_fraction"] == pytest.approx(0.0)  # ranks 3 2 1 0 4 vs 0 1 2 3 4: sum d^2 = 20
+    assert "max_spread_rel" not in v["spearman"]
 
 
 def test_the_actuator_group_is_read_from_the_beams_kind_flags():
@@ -228,6 +263,13 @@ def test_evaluate_all_episodes_joined_splits_and_refuse_an_unknown_split(trained
     split = checkpoint.load(run / "best.pt")["split"]
     joined = evaluate(cfg_for("evaluate", base + [f"out_dir={tmp_path / 'joined'}", "split=val+test"]))
     assert sorted(d["name"] for d in joined["designs"]) == sorted(split["val"] + split["test"])
+    more = synthetic_episode(3, 3, 5, 3, 3, frames=11, seed=77)  # a design generated after the training
+    write_episode(Path(data_dir) / "episode_fresh.h5", more)
+    try:
+        unseen = evaluate(cfg_for("evaluate", base + [f"out_dir={tmp_path / 'unseen'}", "split=unseen"]))
+    finally:
+        (Path(data_dir) / "episode_fresh.h5").unlink()
+    assert sorted(d["name"] for d in unseen["designs"]) == sorted(split["val"] + split["test"] + ["episode_fresh.h5"])
     with pytest.raises(ValueError, match="split='val\\+holdout'.*allowed"):
         evaluate(cfg_for("evaluate", base + [f"out_dir={tmp_path / 'bad'}", "split=val+holdout"]))
     with pytest.raises(ValueError, match="split='holdout'.*allowed"):

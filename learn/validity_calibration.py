@@ -1,0 +1,178 @@
+"""Calibrate the validity check's thresholds against FEA: `.venv/bin/python -m learn.validity_calibration
+'reports=[reports/a]' ['check=[reports/b]'] out_dir=reports/validity_calibration` (conf/validity_calibration.yaml).
+
+A learn.evaluate report holds, per held-out design, what the check reads (the rollout's largest face dislocation /
+design size, the largest share of blocks outside the training feature range, an ensemble's spread) and the max error
+the FEA says the answer has. A design is bad when that error exceeds `error_rel` (by default the flag_error_rel the
+reports were measured with). For each indicator alone, and for the dislocation and the out-of-range share together
+(the check flags when either exceeds its threshold), the thresholds are chosen to maximise Youden's J = the share of
+bad designs flagged - the share of good designs flagged (ties: the fewer flags). The `check` reports, of other models
+or other designs, measure the chosen thresholds where they were not fitted.
+
+Writes calibration.json, calibration.md (a table per rule and the lines for conf/validity/default.yaml) and
+calibration.png (each indicator against the error, the thresholds drawn).
+"""
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import hydra
+import numpy as np
+from omegaconf import DictConfig
+
+from data_schema import atomic
+from learn.combine import read_report
+from learn.evaluate import VALIDITY_INDICATORS, distribution, finite_or_null, rank_correlation
+
+log = logging.getLogger(__name__)
+PAIR = ("max_dislocation_rel", "out_of_range_fraction")  # the two thresholds that judge every single model's rollout
+
+
+def pooled(reports: list[dict], what: str) -> tuple[list[dict], float | None]:
+    """The designs of `reports` (all evaluated with one range_margin, so their out-of-range shares mean the same) and
+    the flag_error_rel they were measured with (None if they do not say or disagree)."""
+    if not reports:
+        raise ValueError(f"{what}: give at least one learn.evaluate report (an out_dir or its report.json)")
+    margins = {r.get("validity_thresholds", {}).get("range_margin") for r in reports}
+    if len(margins) > 1:
+        raise ValueError(f"{what}: reports evaluated with different validity.range_margin {sorted(map(str, margins))}; "
+                         "their out-of-range shares are not comparable")
+    flags = {r.get("validity_measured", {}).get("flag_error_rel") for r in reports}
+    return [d for r in reports for d in r["designs"]], flags.pop() if len(flags) == 1 else None
+
+
+def indicator(designs: list[dict], key: str) -> np.ndarray | None:
+    values = [d.get("validity", {}).get(key) for d in designs]
+    if not designs or any(v is None for v in values):
+        return None
+    return np.nan_to_num(np.asarray(values, dtype=np.float64), nan=np.inf)
+
+
+def outcome(errors: np.ndarray, flagged: np.ndarray, error_rel: float) -> dict:
+    """What flagging `flagged` does against the bad designs (error > error_rel)."""
+    bad = errors > error_rel
+    n_bad, n_good = int(bad.sum()), int((~bad).sum())
+    caught, false = int((bad & flagged).sum()), int((~bad & flagged).sum())
+    return {"n": len(errors), "n_bad": n_bad, "caught": caught, "false_flags": false,
+            "caught_share": caught / n_bad if n_bad else None, "false_share": false / n_good if n_good else None,
+            "youden_j": (caught / n_bad if n_bad else 0.0) - (false / n_good if n_good else 0.0),
+            "passed": distribution(errors[~flagged]), "flagged": distribution(errors[flagged])}
+
+
+def candidates(values: np.ndarray) -> np.ndarray:
+    """Thresholds worth trying: flag above each observed value, or never (inf)."""
+    return np.append(np.unique(values[np.isfinite(values)]), np.inf)
+
+
+def best_thresholds(values: list[np.ndarray], errors: np.ndarray, error_rel: float) -> tuple[list[float], dict]:
+    """The thresholds (one per indicator; a design is flagged when any indicator exceeds its threshold) that maximise
+    Youden's J over a grid of every observed value; ties go to the fewest flags."""
+    bad = errors > error_rel
+    n_bad, n_good = max(int(bad.sum()), 1), max(int((~bad).sum()), 1)
+    grids = np.meshgrid(*(candidates(v) for v in values), indexing="ij")
+    taus = np.stack([g.ravel() for g in grids], axis=1)  # [T, k]
+    flagged = (np.stack(values, axis=1)[None] > taus[:, None]).any(-1)  # [T, N]
+    j = (flagged & bad).sum(1) / n_bad - (flagged & ~bad).sum(1) / n_good
+    best = np.lexsort((flagged.sum(1), -j))[0]
+    return taus[best].tolist(), outcome(errors, flagged[best], error_rel)
+
+
+def flags(designs: list[dict], keys: tuple[str, ...], thresholds: list[float]) -> np.ndarray:
+    return np.stack([indicator(designs, k) > t for k, t in zip(keys, thresholds)], axis=1).any(1)
+
+
+def calibrate(reports: list[dict], error_rel: float | None = None, check: list[dict] | None = None) -> dict:
+    """Thresholds per rule (each indicator alone, and the dislocation and out-of-range pair) fitted on `reports`,
+    measured on `check` as well when given."""
+    designs, measured_at = pooled(reports, "reports")
+    error_rel = measured_at if error_rel is None else float(error_rel)
+    if error_rel is None:
+        raise ValueError("error_rel: the reports do not say which flag_error_rel they were measured with; give one")
+    if not 0 < error_rel < 1:
+        raise ValueError(f"error_rel={error_rel!r}: allowed is a fraction of the design size in (0, 1)")
+    errors = np.array([d["max_rel_error"] for d in designs], dtype=np.float64)
+    others = pooled(check, "check")[0] if check else None
+    present = [k for k in VALIDITY_INDICATORS if indicator(designs, k) is not None]
+    rules = [(k,) for k in present] + ([PAIR] if set(PAIR) <= set(present) else [])
+    out = {"error_rel": error_rel, "n_designs": len(designs), "n_bad": int((errors > error_rel).sum()),
+           "range_margin": reports[0].get("validity_thresholds", {}).get("range_margin"),
+           "spearman": {k: rank_correlation(indicator(designs, k), errors) for k in present}, "rules": []}
+    for keys in rules:
+        thresholds, fitted = best_thresholds([indicator(designs, k) for k in keys], errors, error_rel)
+        rule = {"indicators": list(keys), "thresholds": thresholds, "fitted": fitted}
+        if others is not None and all(indicator(others, k) is not None for k in keys):
+            other_errors = np.array([d["max_rel_error"] for d in others], dtype=np.float64)
+            rule["check"] = outcome(other_errors, flags(others, keys, thresholds), error_rel)
+        out["rules"].append(rule)
+    return out
+
+
+def _pct(x) -> str:
+    return "-" if x is None else f"{100 * x:.2f} %"
+
+
+def _share(o: dict) -> str:
+    return (f"{o['caught']} of {o['n_bad']} bad flagged, {o['false_flags']} of {o['n'] - o['n_bad']} good flagged; "
+            f"passed {_pct(o['passed']['median'])} median / {_pct(o['passed']['p95'])} p95, "
+            f"flagged {_pct(o['flagged']['median'])} median")
+
+
+def markdown(result: dict) -> str:
+    lines = [f"# Validity thresholds against FEA: a design is bad when its max error > {_pct(result['error_rel'])} "
+             f"of its size ({result['n_bad']} of {result['n_designs']} designs)", "",
+             "Spearman of each indicator with the max error: "
+             + ", ".join(f"{k} {v:.2f}" for k, v in result["spearman"].items()), "",
+             "| rule | thresholds | fitted: J | fitted | check: J | check |", "|---|---|---|---|---|---|"]
+    for rule in result["rules"]:
+        fitted, check = rule["fitted"], rule.get("check")
+        thresholds = ", ".join("never" if t is None or not np.isfinite(t) else f"{t:.4g}" for t in rule["thresholds"])
+        lines.append(f"| {' or '.join(rule['indicators'])} | {thresholds} | {fitted['youden_j']:.2f} | "
+                     f"{_share(fitted)} | {'-' if check is None else format(check['youden_j'], '.2f')} | "
+                     f"{'-' if check is None else _share(check)} |")
+    pair = next((r for r in result["rules"] if tuple(r["indicators"]) == PAIR), None)
+    if pair is not None:
+        disl, oor = (1.0 if t is None else min(t, 1.0) for t in pair["thresholds"])
+        lines += ["", f"For conf/validity/default.yaml (range_margin {result['range_margin']}; 1.0 = never flags):", "",
+                  "```yaml", f"max_dislocation_rel: {disl:.4g}", f"max_out_of_range: {oor:.4g}", "```"]
+    return "\n".join(lines) + "\n"
+
+
+def plot(designs: list[dict], result: dict, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    singles = [r for r in result["rules"] if len(r["indicators"]) == 1]
+    fig, axes = plt.subplots(1, len(singles), figsize=(4.5 * len(singles), 4), squeeze=False)
+    errors = np.array([d["max_rel_error"] for d in designs])
+    for ax, rule in zip(axes[0], singles):
+        key = rule["indicators"][0]
+        ax.scatter(indicator(designs, key), 100 * errors, s=12, alpha=0.7)
+        ax.axhline(100 * result["error_rel"], color="k", lw=0.8, ls="--", label="bad above")
+        if rule["thresholds"][0] is not None and np.isfinite(rule["thresholds"][0]):
+            ax.axvline(rule["thresholds"][0], color="r", lw=0.8, label="flag right of")
+        ax.set_xlabel(key)
+        ax.set_ylabel("max error / design size (%)")
+        ax.set_title(f"Spearman {result['spearman'][key]:.2f}, J {rule['fitted']['youden_j']:.2f}")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="validity_calibration")
+def main(cfg: DictConfig) -> None:
+    reports = [read_report(p) for p in cfg.reports]
+    check = [read_report(p) for p in cfg.check] if cfg.check else None
+    result = calibrate(reports, cfg.error_rel, check)
+    out = Path(cfg.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic.write_text(out / "calibration.json", json.dumps(finite_or_null(result), indent=1, allow_nan=False))
+    atomic.write_text(out / "calibration.md", markdown(result))
+    plot(pooled(reports, "reports")[0], result, out / "calibration.png")
+    log.info("\n%s", markdown(result))
+
+
+if __name__ == "__main__":
+    main()

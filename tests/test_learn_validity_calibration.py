@@ -1,0 +1,73 @@
+"""learn.validity_calibration: thresholds of the validity check fitted to held-out reports (synthetic reports)."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from learn.validity_calibration import best_thresholds, calibrate, markdown
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def report(rows: list[tuple[float, float, float]], margin: float = 0.0, flag: float = 0.10) -> dict:
+    """A learn.evaluate report of designs (max error, dislocation / size, out-of-range share)."""
+    return {"validity_thresholds": {"range_margin": margin}, "validity_measured": {"flag_error_rel": flag},
+            "designs": [{"name": f"e{i}", "max_rel_error": e, "valid": True,
+                         "validity": {"max_dislocation_rel": d, "out_of_range_fraction": o}}
+                        for i, (e, d, o) in enumerate(rows)]}
+
+
+# the bad designs (error > 10 %) are those with more than 30 % of blocks out of range, or a dislocation over 4 %
+ROWS = [(0.05, 0.010, 0.10), (0.06, 0.020, 0.20), (0.07, 0.030, 0.30), (0.08, 0.020, 0.25),
+        (0.12, 0.015, 0.40), (0.15, 0.020, 0.60), (0.20, 0.050, 0.10), (0.09, 0.035, 0.00)]
+
+
+def test_a_threshold_is_put_where_it_separates_the_bad_designs_from_the_good():
+    errors = np.array([e for e, _, _ in ROWS])
+    oor = np.array([o for _, _, o in ROWS])
+    (tau,), out = best_thresholds([oor], errors, 0.10)
+    assert tau == pytest.approx(0.30)  # flag above 30 %: both out-of-range bad designs, none of the good
+    assert (out["caught"], out["n_bad"], out["false_flags"]) == (2, 3, 0)
+    assert out["youden_j"] == pytest.approx(2 / 3)
+    assert out["passed"]["worst"] == pytest.approx(0.20)  # the dislocated one slips through this rule alone
+
+
+def test_the_pair_catches_what_each_indicator_misses_and_the_check_reports_measure_it_elsewhere():
+    other = report([(0.05, 0.01, 0.5), (0.15, 0.06, 0.0), (0.25, 0.01, 0.9), (0.08, 0.02, 0.1)])
+    result = calibrate([report(ROWS)], check=[other])
+    assert result["error_rel"] == 0.10 and result["n_bad"] == 3 and result["range_margin"] == 0.0
+    pair = result["rules"][-1]
+    assert pair["indicators"] == ["max_dislocation_rel", "out_of_range_fraction"]
+    assert pair["thresholds"] == pytest.approx([0.035, 0.30])  # the largest values that still leave no bad unflagged
+    assert pair["fitted"]["youden_j"] == pytest.approx(1.0)
+    assert (pair["check"]["caught"], pair["check"]["n_bad"], pair["check"]["false_flags"]) == (2, 2, 1)
+    assert result["spearman"]["max_dislocation_rel"] > 0
+    text = markdown(result)
+    assert "max_dislocation_rel: 0.035" in text and "max_out_of_range: 0.3" in text
+
+
+def test_reports_that_mean_different_things_or_no_bad_design_rule_are_refused():
+    with pytest.raises(ValueError, match="different validity.range_margin"):
+        calibrate([report(ROWS, margin=0.0), report(ROWS, margin=0.25)])
+    with pytest.raises(ValueError, match="error_rel: the reports do not say"):
+        calibrate([report(ROWS, flag=0.10), report(ROWS, flag=0.05)])
+    with pytest.raises(ValueError, match="error_rel=1.5: allowed is a fraction"):
+        calibrate([report(ROWS)], error_rel=1.5)
+    with pytest.raises(ValueError, match="reports: give at least one"):
+        calibrate([])
+
+
+def test_the_command_writes_the_table_the_numbers_and_the_plot(tmp_path):
+    src = tmp_path / "a"
+    src.mkdir()
+    (src / "report.json").write_text(json.dumps(report(ROWS)))
+    out = tmp_path / "cal"
+    subprocess.run([sys.executable, "-m", "learn.validity_calibration", f"reports=[{src}]", f"out_dir={out}"],
+                   cwd=REPO, check=True, capture_output=True)
+    result = json.loads((out / "calibration.json").read_text())
+    assert result["rules"][-1]["thresholds"] == pytest.approx([0.035, 0.30])
+    assert "max_out_of_range: 0.3" in (out / "calibration.md").read_text()
+    assert (out / "calibration.png").stat().st_size > 0
