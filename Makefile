@@ -12,7 +12,7 @@ export OMPI_ALLOW_RUN_AS_ROOT=1
 export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset reference-data validate fingerprint bench-fea stability bench-rollout tradeoff train evaluate reference-train reference-evaluate compare curves diagnose predict sweep learned-extremes clean
+.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset reference-data validate fingerprint bench-fea stability bench-rollout tradeoff train evaluate reference-train reference-evaluate compare validity-calibration curves diagnose predict sweep learned-extremes clean
 
 help:  ## list the targets
 	@grep -E '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-12s %s\n", $$1, $$2}'
@@ -65,6 +65,9 @@ reference-evaluate:  ## CKPT (or CKPT='[a.pt,b.pt]', an ensemble) on the 102 hel
 
 compare:  ## design-by-design comparison of reports against the first (REPORTS=a,b[,c]; LABELS=x,y[,z]; SIZES=n1,n2,..: a scaling fit; reports/compare/)
 	$(PY) -m learn.compare 'reports=[$(REPORTS)]' $(if $(LABELS),'labels=[$(LABELS)]') $(if $(SIZES),'sizes=[$(SIZES)]') out_dir=$(or $(CMP),reports/compare)
+
+validity-calibration:  ## fit the validity thresholds to held-out reports (REPORTS=a,b; CHECK=c,d measured apart; reports/validity_calibration/)
+	$(PY) -m learn.validity_calibration 'reports=[$(REPORTS)]' $(if $(CHECK),'check=[$(CHECK)]') out_dir=reports/validity_calibration
 
 curves:  ## training curves of runs side by side, by epoch and by hour (RUNS=runs/a,runs/b; LABELS=x,y; reports/curves/)
 	$(PY) -m learn.curves 'runs=[$(RUNS)]' $(if $(LABELS),'labels=[$(LABELS)]') out_dir=$(or $(CURVES),reports/curves)
