@@ -78,11 +78,12 @@ def out_of_range(model: Simulator | Ensemble, r: Rollout, margin: float) -> np.n
     return torch.cat([joint_bad, beam_bad], 1).float().mean(1).numpy()
 
 
-def check(model: Simulator | Ensemble, r: Rollout, max_dislocation_rel: float = 0.05, range_margin: float = 0.0,
-          max_out_of_range: float = 0.5, envelope: dict | None = None, condition_tolerance: float = REL_TOL,
+def check(model: Simulator | Ensemble, r: Rollout, max_dislocation_rel: float = 0.04, range_margin: float = 0.0,
+          max_out_of_range: float = 0.3, envelope: dict | None = None, condition_tolerance: float = REL_TOL,
           max_spread_rel: float | None = None) -> Verdict:
     """Verdict on one rollout; invalid when any frame breaks a threshold (the dislocation and spread as fractions
-    of the design size, the out-of-range share as a fraction of the blocks), any value is not finite, or the episode's
+    of the design size, the out-of-range share as a fraction of the blocks; the defaults are
+    conf/validity/default.yaml's), any value is not finite, or the episode's
     conditions (material, residual stress, body force, mesh, design size) lie outside the training `envelope`
     (stored in the checkpoint by learn.train) by more than `condition_tolerance`, relative. An ensemble's rollout
     (r.member_points) also reports its members' spread, and is invalid where it exceeds `max_spread_rel` of the

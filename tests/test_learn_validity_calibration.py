@@ -71,3 +71,16 @@ def test_the_command_writes_the_table_the_numbers_and_the_plot(tmp_path):
     assert result["rules"][-1]["thresholds"] == pytest.approx([0.035, 0.30])
     assert "max_out_of_range: 0.3" in (out / "calibration.md").read_text()
     assert (out / "calibration.png").stat().st_size > 0
+
+
+def test_the_check_defaults_are_the_calibrated_thresholds_of_conf():
+    """learn.validity.check's keyword defaults (used by callers that pass no config) equal conf/validity/default.yaml,
+    the one place the calibrated thresholds are kept."""
+    import inspect
+
+    from omegaconf import OmegaConf
+
+    from learn.validity import check
+    conf = OmegaConf.to_container(OmegaConf.load(REPO / "conf" / "validity" / "default.yaml"))
+    defaults = {k: p.default for k, p in inspect.signature(check).parameters.items() if k in conf}
+    assert defaults == conf
