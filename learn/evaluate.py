@@ -70,7 +70,7 @@ def by_frame(designs: list[dict]) -> dict | None:
 
 
 # what the validity check reads, per design (learn.validity.Verdict fields): how well each ranks designs by error
-VALIDITY_INDICATORS = ("max_dislocation_rel", "out_of_range_fraction", "max_spread_rel")
+VALIDITY_INDICATORS = ("max_dislocation_rel", "out_of_range_fraction", "unrolled_one_kind", "max_spread_rel")
 
 
 def validity_measured(designs: list[dict], flag_error_rel: float) -> dict:

@@ -7,6 +7,11 @@ Symptoms, all measurable without FEA:
   max error is at least half the dislocation (`error_lower_bound_rel`), whatever the FEA would say;
 - out of range: a block's PCA coefficients leave the range seen in training (widened by a margin), so the
   networks extrapolate;
+- unrolled (designs whose actuators are all one kind): such a grid cannot take the doubly curved bowl its
+  actuators want without stretching, so it rolls one way into a near-cylinder (37 of 44 held-out FEA answers, session
+  29) or, rarely, closes into a bowl by a snap. An answer that has not rolled sits on the symmetric branch between
+  the two, where the FEA goes one way or the other: 1 - |s_x - s_y| with s the final frame's x and y extents over the
+  flat design's (1: no roll at all; 0 for mixed designs, which have no such branch);
 - conditions: the episode's material, residual stress, body force, mesh or design size lie outside those of the
   training episodes (learn.conditions). The graphs do not carry them, so the other two checks cannot see them;
 - spread (ensembles only, learn.ensemble): the members disagree about a point by more than a fraction of the
@@ -16,7 +21,7 @@ Symptoms, all measurable without FEA:
 The dislocation and spread are judged relative to the design size, as the error is. The thresholds
 (conf/validity/default.yaml) are calibrated against FEA on held-out designs: learn.evaluate measures, on every
 report, how many designs worse than `flag_error_rel` the check flags and how many better ones it flags needlessly
-(`validity_measured`), and scripts/validity_calibration.py picks the thresholds that best separate the two from such
+(`validity_measured`), and learn.validity_calibration picks the thresholds that best separate the two from such
 reports (docs/learned_simulator.md, session 29).
 """
 from __future__ import annotations
@@ -42,6 +47,7 @@ class Verdict:
     error_lower_bound_rel: float = 0.0  # half of it: the answer's max error / design size is at least this
     dislocation_per_frame: list[float] = field(default_factory=list)
     out_of_range_fraction: float = 0.0  # of (frame, block) pairs with a coefficient outside the training range
+    unrolled_one_kind: float = 0.0  # all one kind: 1 - |s_x - s_y| of the final shape (unrolled above); mixed: 0
     first_bad_frame: int | None = None
     max_spread_rel: float | None = None  # ensembles: largest member-to-mean point distance / design size
     spread_per_frame: list[float] = field(default_factory=list)  # the same per frame
@@ -56,6 +62,16 @@ def dislocation(r: Rollout) -> np.ndarray:
     if len(pairs) == 0:
         return np.zeros(r.n_frames)
     return np.linalg.norm(r.points[:, pairs[:, 0]] - r.points[:, pairs[:, 1]], axis=-1).max(axis=1)
+
+
+def unrolled_one_kind(r: Rollout) -> float:
+    """1 - |s_x - s_y|, s the final frame's x and y extents over frame 0's, for a design whose actuators are all one
+    kind (an answer that has not chosen a direction to roll in); 0 for a mixed design."""
+    if r.features.actuators not in ("all up", "all down"):
+        return 0.0
+    extent = lambda x: np.ptp(x[:, :2], axis=0)  # noqa: E731
+    s = extent(r.points[-1]) / np.maximum(extent(r.points[0]), 1e-9)
+    return float(1.0 - abs(s[0] - s[1]))
 
 
 def out_of_range(model: Simulator | Ensemble, r: Rollout, margin: float) -> np.ndarray:
@@ -79,8 +95,8 @@ def out_of_range(model: Simulator | Ensemble, r: Rollout, margin: float) -> np.n
 
 
 def check(model: Simulator | Ensemble, r: Rollout, max_dislocation_rel: float = 0.04, range_margin: float = 0.0,
-          max_out_of_range: float = 0.3, envelope: dict | None = None, condition_tolerance: float = REL_TOL,
-          max_spread_rel: float | None = None) -> Verdict:
+          max_out_of_range: float = 0.3, max_unrolled_one_kind: float = 0.85, envelope: dict | None = None,
+          condition_tolerance: float = REL_TOL, max_spread_rel: float | None = None) -> Verdict:
     """Verdict on one rollout; invalid when any frame breaks a threshold (the dislocation and spread as fractions
     of the design size, the out-of-range share as a fraction of the blocks; the defaults are
     conf/validity/default.yaml's), any value is not finite, or the episode's
@@ -96,6 +112,12 @@ def check(model: Simulator | Ensemble, r: Rollout, max_dislocation_rel: float = 
     disl = np.where(finite, dislocation(r), np.inf)
     oor = np.where(finite, out_of_range(model, r, range_margin), 1.0)
     bad = (disl > max_dislocation_rel * size) | (oor > max_out_of_range) | ~finite
+    unrolled = unrolled_one_kind(r) if finite.all() else 0.0
+    if unrolled > max_unrolled_one_kind:  # a property of the answer's last frame
+        bad[-1] = True
+        reasons.append(f"all actuators {r.features.actuators.removeprefix('all ')} and the answer has not rolled "
+                       f"(1 - |s_x - s_y| = {unrolled:.3g} > {max_unrolled_one_kind:.3g}): a bifurcation, where the "
+                       "FEA rolls one way or snaps into a bowl")
     spread = None
     if r.member_points is not None:
         spread = np.where(finite, member_spread(r.member_points) / r.features.design_size, np.inf)
@@ -119,6 +141,7 @@ def check(model: Simulator | Ensemble, r: Rollout, max_dislocation_rel: float = 
     return Verdict(valid=not bad.any() and not off_conditions, reasons=reasons, max_dislocation_mm=float(disl.max()),
                    max_dislocation_rel=float(disl.max() / size), error_lower_bound_rel=float(disl.max() / size / 2),
                    dislocation_per_frame=[float(d) for d in disl], out_of_range_fraction=float(oor.max()),
+                   unrolled_one_kind=unrolled,
                    first_bad_frame=0 if off_conditions else int(np.argmax(bad)) if bad.any() else None,
                    max_spread_rel=None if spread is None else float(spread.max()),
                    spread_per_frame=[] if spread is None else [float(x) for x in spread])

@@ -4,8 +4,8 @@
 A learn.evaluate report holds, per held-out design, what the check reads (the rollout's largest face dislocation /
 design size, the largest share of blocks outside the training feature range, an ensemble's spread) and the max error
 the FEA says the answer has. A design is bad when that error exceeds `error_rel` (by default the flag_error_rel the
-reports were measured with). For each indicator alone, and for the dislocation and the out-of-range share together
-(the check flags when either exceeds its threshold), the thresholds are chosen to maximise Youden's J = the share of
+reports were measured with). For each indicator alone, and for those that judge every single model together
+(the check flags when any exceeds its threshold), the thresholds are chosen to maximise Youden's J = the share of
 bad designs flagged - the share of good designs flagged (ties: the fewer flags). The `check` reports, of other models
 or other designs, measure the chosen thresholds where they were not fitted.
 
@@ -27,7 +27,10 @@ from learn.combine import read_report
 from learn.evaluate import VALIDITY_INDICATORS, distribution, finite_or_null, rank_correlation
 
 log = logging.getLogger(__name__)
-PAIR = ("max_dislocation_rel", "out_of_range_fraction")  # the two thresholds that judge every single model's rollout
+# the indicators that judge every single model's rollout, and their thresholds' names in conf/validity/default.yaml
+CONF_KEYS = {"max_dislocation_rel": "max_dislocation_rel", "out_of_range_fraction": "max_out_of_range",
+             "unrolled_one_kind": "max_unrolled_one_kind"}
+MAX_CANDIDATES = 40  # thresholds tried per indicator in a joint rule (quantiles when more values were observed)
 
 
 def pooled(reports: list[dict], what: str) -> tuple[list[dict], float | None]:
@@ -61,21 +64,28 @@ def outcome(errors: np.ndarray, flagged: np.ndarray, error_rel: float) -> dict:
             "passed": distribution(errors[~flagged]), "flagged": distribution(errors[flagged])}
 
 
-def candidates(values: np.ndarray) -> np.ndarray:
-    """Thresholds worth trying: flag above each observed value, or never (inf)."""
-    return np.append(np.unique(values[np.isfinite(values)]), np.inf)
+def candidates(values: np.ndarray, at_most: int | None = None) -> np.ndarray:
+    """Thresholds worth trying: flag above each observed value (or `at_most` of them at even quantiles), or never
+    (inf)."""
+    seen = np.unique(values[np.isfinite(values)])
+    if at_most is not None and len(seen) > at_most:
+        seen = np.unique(np.quantile(seen, np.linspace(0.0, 1.0, at_most), method="nearest"))
+    return np.append(seen, np.inf)
 
 
 def best_thresholds(values: list[np.ndarray], errors: np.ndarray, error_rel: float) -> tuple[list[float], dict]:
     """The thresholds (one per indicator; a design is flagged when any indicator exceeds its threshold) that maximise
-    Youden's J over a grid of every observed value; ties go to the fewest flags."""
+    Youden's J over a grid of the observed values; ties go to the fewest flags, then to the larger thresholds (an
+    indicator that adds nothing is left at inf: never flags)."""
     bad = errors > error_rel
     n_bad, n_good = max(int(bad.sum()), 1), max(int((~bad).sum()), 1)
-    grids = np.meshgrid(*(candidates(v) for v in values), indexing="ij")
+    at_most = None if len(values) == 1 else MAX_CANDIDATES
+    grids = np.meshgrid(*(candidates(v, at_most) for v in values), indexing="ij")
     taus = np.stack([g.ravel() for g in grids], axis=1)  # [T, k]
     flagged = (np.stack(values, axis=1)[None] > taus[:, None]).any(-1)  # [T, N]
     j = (flagged & bad).sum(1) / n_bad - (flagged & ~bad).sum(1) / n_good
-    best = np.lexsort((flagged.sum(1), -j))[0]
+    larger = np.argsort(np.argsort(-taus, axis=0), axis=0).sum(1)  # rank sum: small where the thresholds are large
+    best = np.lexsort((larger, flagged.sum(1), -j))[0]
     return taus[best].tolist(), outcome(errors, flagged[best], error_rel)
 
 
@@ -95,7 +105,8 @@ def calibrate(reports: list[dict], error_rel: float | None = None, check: list[d
     errors = np.array([d["max_rel_error"] for d in designs], dtype=np.float64)
     others = pooled(check, "check")[0] if check else None
     present = [k for k in VALIDITY_INDICATORS if indicator(designs, k) is not None]
-    rules = [(k,) for k in present] + ([PAIR] if set(PAIR) <= set(present) else [])
+    joint = tuple(k for k in CONF_KEYS if k in present)  # flagged when any of them exceeds its threshold
+    rules = [(k,) for k in present] + ([joint] if len(joint) > 1 else [])
     out = {"error_rel": error_rel, "n_designs": len(designs), "n_bad": int((errors > error_rel).sum()),
            "range_margin": reports[0].get("validity_thresholds", {}).get("range_margin"),
            "spearman": {k: rank_correlation(indicator(designs, k), errors) for k in present}, "rules": []}
@@ -131,11 +142,12 @@ def markdown(result: dict) -> str:
         lines.append(f"| {' or '.join(rule['indicators'])} | {thresholds} | {fitted['youden_j']:.2f} | "
                      f"{_share(fitted)} | {'-' if check is None else format(check['youden_j'], '.2f')} | "
                      f"{'-' if check is None else _share(check)} |")
-    pair = next((r for r in result["rules"] if tuple(r["indicators"]) == PAIR), None)
-    if pair is not None:
-        disl, oor = (1.0 if t is None else min(t, 1.0) for t in pair["thresholds"])
+    joint = next((r for r in result["rules"] if len(r["indicators"]) > 1), None)
+    if joint is not None:
         lines += ["", f"For conf/validity/default.yaml (range_margin {result['range_margin']}; 1.0 = never flags):", "",
-                  "```yaml", f"max_dislocation_rel: {disl:.4g}", f"max_out_of_range: {oor:.4g}", "```"]
+                  "```yaml",
+                  *(f"{CONF_KEYS[k]}: {1.0 if t is None else min(t, 1.0):.4g}"
+                    for k, t in zip(joint["indicators"], joint["thresholds"])), "```"]
     return "\n".join(lines) + "\n"
 
 

@@ -216,7 +216,8 @@ def test_evaluate_writes_the_report(trained, tmp_path):
     assert v["caught"] == sum(b and f for b, f in zip(bad, flagged))
     assert v["false_flags"] == sum(f and not b for b, f in zip(bad, flagged))
     assert v["passed"]["n"] + v["flagged"]["n"] == on_disk["n_designs"]
-    assert set(v["spearman"]) == {"max_dislocation_rel", "out_of_range_fraction"}  # one model: no spread
+    assert set(v["spearman"]) == {"max_dislocation_rel", "out_of_range_fraction", "unrolled_one_kind"}  # no spread:
+    # one model
     assert "Validity check against max error > 10.00%" in (tmp_path / "report.md").read_text()
     with pytest.raises(ValueError, match="flag_error_rel=1.5: allowed is a fraction of the design size in"):
         evaluate(cfg_for("evaluate", [f"checkpoint={run / 'best.pt'}", f"out_dir={tmp_path / 'x'}",

@@ -84,3 +84,40 @@ def test_the_check_defaults_are_the_calibrated_thresholds_of_conf():
     conf = OmegaConf.to_container(OmegaConf.load(REPO / "conf" / "validity" / "default.yaml"))
     defaults = {k: p.default for k, p in inspect.signature(check).parameters.items() if k in conf}
     assert defaults == conf
+
+
+def test_an_answer_of_a_one_kind_design_that_has_not_rolled_is_the_unrolled_indicator():
+    """learn.validity.unrolled_one_kind: 1 - |s_x - s_y| (s: final x, y extents / flat ones) for all-up or all-down
+    designs, 0 for mixed ones; the check flags its last frame above max_unrolled_one_kind."""
+    from dataclasses import replace
+
+    from data_schema.testing import synthetic_episode
+    from learn.features import extract
+    from learn.rollout import reference
+    from learn.validity import unrolled_one_kind
+
+    ep = synthetic_episode(3, 3, 5, 3, 3, frames=3, seed=0)
+    ep.beam_kind[:] = 1  # all down
+    r = reference(extract(ep))
+    flat = r.points[0]
+    rolled = flat.copy()
+    rolled[:, 0] = flat[:, 0].min() + 0.4 * (flat[:, 0] - flat[:, 0].min())  # x extent to 40 %, y kept: a roll
+    bowl = flat.copy()
+    bowl[:, :2] = flat[:, :2].min(0) + 0.8 * (flat[:, :2] - flat[:, :2].min(0))  # both to 80 %: no roll
+    assert unrolled_one_kind(replace(r, points=np.stack([flat, rolled]))) == pytest.approx(0.4)
+    assert unrolled_one_kind(replace(r, points=np.stack([flat, bowl]))) == pytest.approx(1.0)
+    ep.beam_kind[0] = 0  # one up among the downs: mixed, no such branch
+    assert unrolled_one_kind(replace(reference(extract(ep)), points=np.stack([flat, bowl]))) == 0.0
+
+
+def test_a_third_indicator_joins_the_joint_rule_when_it_catches_what_the_others_miss():
+    rows = ROWS + [(0.30, 0.01, 0.05)]  # a bad design both miss ...
+    rep = report(rows)
+    for d, unrolled in zip(rep["designs"], [0.0] * len(ROWS) + [0.97]):  # ... and the roll indicator sees
+        d["validity"]["unrolled_one_kind"] = unrolled
+    joint = calibrate([rep])["rules"][-1]
+    assert joint["indicators"] == ["max_dislocation_rel", "out_of_range_fraction", "unrolled_one_kind"]
+    assert joint["thresholds"] == pytest.approx([0.035, 0.30, 0.0]) and joint["fitted"]["youden_j"] == 1.0
+    rep["designs"][-1]["validity"]["unrolled_one_kind"] = 0.0  # it sees nothing: left at never
+    joint = calibrate([rep])["rules"][-1]
+    assert joint["thresholds"][2] == np.inf and "max_unrolled_one_kind: 1" in markdown(calibrate([rep]))
