@@ -94,8 +94,8 @@ def flags(designs: list[dict], keys: tuple[str, ...], thresholds: list[float]) -
 
 
 def calibrate(reports: list[dict], error_rel: float | None = None, check: list[dict] | None = None) -> dict:
-    """Thresholds per rule (each indicator alone, and the dislocation and out-of-range pair) fitted on `reports`,
-    measured on `check` as well when given."""
+    """Thresholds per rule (each indicator alone, and the single-model ones of CONF_KEYS together) fitted on
+    `reports`, measured on `check` as well when given."""
     designs, measured_at = pooled(reports, "reports")
     error_rel = measured_at if error_rel is None else float(error_rel)
     if error_rel is None:
