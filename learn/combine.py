@@ -50,11 +50,11 @@ def combine(reports: list[dict]) -> dict:
     weights = np.array([r["n_designs"] for r in reports], dtype=float)
     mean = lambda key: float(np.average([np.nan if r.get(key) is None else r[key] for r in reports],  # noqa: E731
                                         weights=weights))
-    flag = {json.dumps(r.get("validity_measured", {}).get("flag_error_rel")) for r in reports}
+    flag = {r.get("validity_measured", {}).get("flag_error_rel") for r in reports}
     if len(flag) > 1:
-        raise ValueError(f"reports differ in flag_error_rel ({sorted(flag)}): evaluate them with the same one")
+        raise ValueError(f"reports differ in flag_error_rel ({sorted(map(str, flag))}): evaluate them with one value")
     out = {
-        **design_statistics(designs, reports[0].get("validity_measured", {}).get("flag_error_rel")),
+        **design_statistics(designs, flag.pop()),
         **{key: mean(key) for key in WEIGHTED},
         "n_invalid": int(sum(not d["valid"] for d in designs)),
         **{key: reports[0].get(key, ABSENT.get(key)) for key in SAME},

@@ -73,22 +73,38 @@ def by_frame(designs: list[dict]) -> dict | None:
 VALIDITY_INDICATORS = ("max_dislocation_rel", "out_of_range_fraction", "unrolled_one_kind", "max_spread_rel")
 
 
-def validity_measured(designs: list[dict], flag_error_rel: float) -> dict:
-    """How well the validity check separates bad answers (max error > flag_error_rel of the design size) from the
-    rest: of the bad designs how many it flags (caught), of the others how many it flags needlessly (false_flags),
-    the error distributions of the passed and the flagged, and each indicator's Spearman rank correlation with the
-    error (1: it orders the designs exactly as the error does)."""
-    errors = np.array([d["max_rel_error"] for d in designs], dtype=np.float64)
-    flagged = np.array([not d["valid"] for d in designs], dtype=bool)
-    bad = errors > flag_error_rel
-    out = {"flag_error_rel": float(flag_error_rel), "n_bad": int(bad.sum()), "n_flagged": int(flagged.sum()),
-           "caught": int((bad & flagged).sum()), "false_flags": int((~bad & flagged).sum()),
-           "passed": distribution(errors[~flagged]), "flagged": distribution(errors[flagged]), "spearman": {}}
+def validity_indicators(designs: list[dict]) -> dict[str, np.ndarray]:
+    """The indicators of VALIDITY_INDICATORS that every design's verdict holds: their values [N] (nan as inf)."""
+    out = {}
     for key in VALIDITY_INDICATORS:
         values = [d.get("validity", {}).get(key) for d in designs]
         if designs and all(v is not None for v in values):
-            out["spearman"][key] = rank_correlation(values, errors)
+            out[key] = np.nan_to_num(np.asarray(values, dtype=np.float64), nan=np.inf)
     return out
+
+
+def flag_outcome(errors: np.ndarray, flagged: np.ndarray, error_rel: float) -> dict:
+    """What flagging `flagged` [N] does against the bad designs (max error > error_rel of the design size): of the
+    bad ones how many it flags (caught), of the others how many needlessly (false_flags), Youden's J (the share of
+    bad flagged - the share of good flagged) and the error distributions of the passed and the flagged."""
+    bad = errors > error_rel
+    n_bad, n_good = int(bad.sum()), int((~bad).sum())
+    caught, false = int((bad & flagged).sum()), int((~bad & flagged).sum())
+    return {"n": len(errors), "n_bad": n_bad, "caught": caught, "false_flags": false,
+            "caught_share": caught / n_bad if n_bad else None, "false_share": false / n_good if n_good else None,
+            "youden_j": (caught / n_bad if n_bad else 0.0) - (false / n_good if n_good else 0.0),
+            "passed": distribution(errors[~flagged]), "flagged": distribution(errors[flagged])}
+
+
+def validity_measured(designs: list[dict], flag_error_rel: float) -> dict:
+    """How well the validity check separates bad answers (max error > flag_error_rel of the design size) from the
+    rest (flag_outcome of its verdicts), and each indicator's Spearman rank correlation with the error (1: it
+    orders the designs exactly as the error does)."""
+    errors = np.array([d["max_rel_error"] for d in designs], dtype=np.float64)
+    flagged = np.array([not d["valid"] for d in designs], dtype=bool)
+    return {"flag_error_rel": float(flag_error_rel), "n_flagged": int(flagged.sum()),
+            **flag_outcome(errors, flagged, flag_error_rel),
+            "spearman": {k: rank_correlation(v, errors) for k, v in validity_indicators(designs).items()}}
 
 
 def design_statistics(designs: list[dict], flag_error_rel: float | None = None) -> dict:
@@ -171,9 +187,10 @@ def timings(model: Simulator, features: list[EpisodeFeatures], repeats: int) -> 
     }
 
 
-def flag_error_rel_checked(value) -> float:
+def flag_error_rel_checked(value, name: str = "flag_error_rel") -> float:
+    """An error level a flag is judged against: a fraction of the design size in (0, 1)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < 1:
-        raise ValueError(f"flag_error_rel={value!r}: allowed is a fraction of the design size in (0, 1), e.g. 0.10")
+        raise ValueError(f"{name}={value!r}: allowed is a fraction of the design size in (0, 1), e.g. 0.10")
     return float(value)
 
 

@@ -111,7 +111,8 @@ def check(model: Simulator | Ensemble, r: Rollout, max_dislocation_rel: float = 
     size = r.features.design_size
     disl = np.where(finite, dislocation(r), np.inf)
     oor = np.where(finite, out_of_range(model, r, range_margin), 1.0)
-    bad = (disl > max_dislocation_rel * size) | (oor > max_out_of_range) | ~finite
+    torn, outside_range = disl > max_dislocation_rel * size, oor > max_out_of_range
+    bad = torn | outside_range | ~finite
     unrolled = unrolled_one_kind(r) if finite.all() else 0.0
     if unrolled > max_unrolled_one_kind:  # a property of the answer's last frame
         bad[-1] = True
@@ -120,7 +121,7 @@ def check(model: Simulator | Ensemble, r: Rollout, max_dislocation_rel: float = 
                        "FEA rolls one way or snaps into a bowl")
     spread = None
     if r.member_points is not None:
-        spread = np.where(finite, member_spread(r.member_points) / r.features.design_size, np.inf)
+        spread = np.where(finite, member_spread(r.member_points) / size, np.inf)
         if max_spread_rel is not None:
             bad |= spread > max_spread_rel
             if (spread > max_spread_rel).any():
@@ -129,13 +130,13 @@ def check(model: Simulator | Ensemble, r: Rollout, max_dislocation_rel: float = 
                                f"{k} (limit {100 * max_spread_rel:.3g} %)")
     if not finite.all():
         reasons.append(f"non-finite points from frame {int(np.argmin(finite))}")
-    if (disl > max_dislocation_rel * size).any():
-        k = int(np.argmax(disl > max_dislocation_rel * size))
+    if torn.any():
+        k = int(np.argmax(torn))
         reasons.append(f"beam/joint faces dislocated by {disl[k]:.3g} mm = {100 * disl[k] / size:.3g} % of the design "
                        f"size at frame {k} (limit {100 * max_dislocation_rel:.3g} %): the max error is at least "
                        f"{100 * disl[k] / size / 2:.3g} %")
-    if (oor > max_out_of_range).any():
-        k = int(np.argmax(oor > max_out_of_range))
+    if outside_range.any():
+        k = int(np.argmax(outside_range))
         reasons.append(f"{100 * oor[k]:.0f} % of blocks outside the training feature range at frame {k} "
                        f"(limit {100 * max_out_of_range:.3g} %; margin {range_margin} of the range)")
     return Verdict(valid=not bad.any() and not off_conditions, reasons=reasons, max_dislocation_mm=float(disl.max()),

@@ -24,7 +24,8 @@ from omegaconf import DictConfig
 
 from data_schema import atomic
 from learn.combine import read_report
-from learn.evaluate import VALIDITY_INDICATORS, distribution, finite_or_null, rank_correlation
+from learn.evaluate import (_pct, finite_or_null, flag_error_rel_checked, flag_outcome, rank_correlation,
+                            validity_indicators)
 
 log = logging.getLogger(__name__)
 # the indicators that judge every single model's rollout, and their thresholds' names in conf/validity/default.yaml
@@ -44,24 +45,6 @@ def pooled(reports: list[dict], what: str) -> tuple[list[dict], float | None]:
                          "their out-of-range shares are not comparable")
     flags = {r.get("validity_measured", {}).get("flag_error_rel") for r in reports}
     return [d for r in reports for d in r["designs"]], flags.pop() if len(flags) == 1 else None
-
-
-def indicator(designs: list[dict], key: str) -> np.ndarray | None:
-    values = [d.get("validity", {}).get(key) for d in designs]
-    if not designs or any(v is None for v in values):
-        return None
-    return np.nan_to_num(np.asarray(values, dtype=np.float64), nan=np.inf)
-
-
-def outcome(errors: np.ndarray, flagged: np.ndarray, error_rel: float) -> dict:
-    """What flagging `flagged` does against the bad designs (error > error_rel)."""
-    bad = errors > error_rel
-    n_bad, n_good = int(bad.sum()), int((~bad).sum())
-    caught, false = int((bad & flagged).sum()), int((~bad & flagged).sum())
-    return {"n": len(errors), "n_bad": n_bad, "caught": caught, "false_flags": false,
-            "caught_share": caught / n_bad if n_bad else None, "false_share": false / n_good if n_good else None,
-            "youden_j": (caught / n_bad if n_bad else 0.0) - (false / n_good if n_good else 0.0),
-            "passed": distribution(errors[~flagged]), "flagged": distribution(errors[flagged])}
 
 
 def candidates(values: np.ndarray, at_most: int | None = None) -> np.ndarray:
@@ -86,42 +69,34 @@ def best_thresholds(values: list[np.ndarray], errors: np.ndarray, error_rel: flo
     j = (flagged & bad).sum(1) / n_bad - (flagged & ~bad).sum(1) / n_good
     larger = np.argsort(np.argsort(-taus, axis=0), axis=0).sum(1)  # rank sum: small where the thresholds are large
     best = np.lexsort((larger, flagged.sum(1), -j))[0]
-    return taus[best].tolist(), outcome(errors, flagged[best], error_rel)
-
-
-def flags(designs: list[dict], keys: tuple[str, ...], thresholds: list[float]) -> np.ndarray:
-    return np.stack([indicator(designs, k) > t for k, t in zip(keys, thresholds)], axis=1).any(1)
+    return taus[best].tolist(), flag_outcome(errors, flagged[best], error_rel)
 
 
 def calibrate(reports: list[dict], error_rel: float | None = None, check: list[dict] | None = None) -> dict:
     """Thresholds per rule (each indicator alone, and the single-model ones of CONF_KEYS together) fitted on
     `reports`, measured on `check` as well when given."""
     designs, measured_at = pooled(reports, "reports")
-    error_rel = measured_at if error_rel is None else float(error_rel)
-    if error_rel is None:
+    if error_rel is None and measured_at is None:
         raise ValueError("error_rel: the reports do not say which flag_error_rel they were measured with; give one")
-    if not 0 < error_rel < 1:
-        raise ValueError(f"error_rel={error_rel!r}: allowed is a fraction of the design size in (0, 1)")
+    error_rel = flag_error_rel_checked(measured_at if error_rel is None else error_rel, "error_rel")
     errors = np.array([d["max_rel_error"] for d in designs], dtype=np.float64)
+    values = validity_indicators(designs)
+    joint = tuple(k for k in CONF_KEYS if k in values)  # flagged when any of them exceeds its threshold
+    rules = [(k,) for k in values] + ([joint] if len(joint) > 1 else [])
     others = pooled(check, "check")[0] if check else None
-    present = [k for k in VALIDITY_INDICATORS if indicator(designs, k) is not None]
-    joint = tuple(k for k in CONF_KEYS if k in present)  # flagged when any of them exceeds its threshold
-    rules = [(k,) for k in present] + ([joint] if len(joint) > 1 else [])
+    other_values = validity_indicators(others) if others else {}
     out = {"error_rel": error_rel, "n_designs": len(designs), "n_bad": int((errors > error_rel).sum()),
            "range_margin": reports[0].get("validity_thresholds", {}).get("range_margin"),
-           "spearman": {k: rank_correlation(indicator(designs, k), errors) for k in present}, "rules": []}
+           "spearman": {k: rank_correlation(v, errors) for k, v in values.items()}, "rules": []}
     for keys in rules:
-        thresholds, fitted = best_thresholds([indicator(designs, k) for k in keys], errors, error_rel)
+        thresholds, fitted = best_thresholds([values[k] for k in keys], errors, error_rel)
         rule = {"indicators": list(keys), "thresholds": thresholds, "fitted": fitted}
-        if others is not None and all(indicator(others, k) is not None for k in keys):
+        if all(k in other_values for k in keys):
             other_errors = np.array([d["max_rel_error"] for d in others], dtype=np.float64)
-            rule["check"] = outcome(other_errors, flags(others, keys, thresholds), error_rel)
+            flagged = np.stack([other_values[k] > t for k, t in zip(keys, thresholds)], axis=1).any(1)
+            rule["check"] = flag_outcome(other_errors, flagged, error_rel)
         out["rules"].append(rule)
     return out
-
-
-def _pct(x) -> str:
-    return "-" if x is None else f"{100 * x:.2f} %"
 
 
 def _share(o: dict) -> str:
@@ -157,10 +132,10 @@ def plot(designs: list[dict], result: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
     singles = [r for r in result["rules"] if len(r["indicators"]) == 1]
     fig, axes = plt.subplots(1, len(singles), figsize=(4.5 * len(singles), 4), squeeze=False)
-    errors = np.array([d["max_rel_error"] for d in designs])
+    errors, values = np.array([d["max_rel_error"] for d in designs]), validity_indicators(designs)
     for ax, rule in zip(axes[0], singles):
         key = rule["indicators"][0]
-        ax.scatter(indicator(designs, key), 100 * errors, s=12, alpha=0.7)
+        ax.scatter(values[key], 100 * errors, s=12, alpha=0.7)
         ax.axhline(100 * result["error_rel"], color="k", lw=0.8, ls="--", label="bad above")
         if rule["thresholds"][0] is not None and np.isfinite(rule["thresholds"][0]):
             ax.axvline(rule["thresholds"][0], color="r", lw=0.8, label="flag right of")
