@@ -165,6 +165,12 @@ def rollout_lattice_turns_checked(value, name: str, kinematic: bool = False) -> 
     return int(value)
 
 
+def passes_checked(value) -> int:
+    """model.passes: network passes per step, each with its own core, each reading the state the last one reached."""
+    return integer_in(value, "model.passes", 1, 4, "1 = one pass per step, the thesis; 2 = a predictor and a "
+                      "corrector that reads where the predictor went")
+
+
 def global_latent_checked(value) -> int:
     """model.global_latent: length of the design-wide vector of every GN block (0: none, the thesis' block)."""
     return integer_in(value, "model.global_latent", 0, 1024, "0 = no design-wide vector")
@@ -210,6 +216,8 @@ class Simulator(nn.Module):
           beam's stiffness and natural increment and every joint's anchoring and load, one linear solve per
           design moves the joints rigidly (the matrix stiffness method, learn/stiffness.py) and the beams with
           them, and the additive dG is added on top; frame global only),
+          passes (int in [1, 4], default 1: network passes per step, each with its own core; a pass after the
+          first, a corrector, reads the state the pass before reached and adds its update, additive or stiffness),
           stress_input (bool, default true: the stress terms are network inputs; false:
           predicted and carried in the state, not read back), pca ({term: [D, K]} for every name in TERMS)
           -- all plain types, so they are saved in checkpoints.
@@ -231,6 +239,10 @@ class Simulator(nn.Module):
         if self.stiffness and args.get("frame", "global") != "global":
             raise ValueError(f"model.update=stiffness needs model.frame=global (got {args.get('frame')!r})")
         self.beam_middle = stiffness.beam_middle_checked(args.get("beam_middle", "mean"))
+        self.passes = passes_checked(args.get("passes", 1))
+        if self.passes > 1 and (self.direct or self.kinematic):
+            raise ValueError(f"model.passes={self.passes}: needs model.update=additive or stiffness (a corrector pass "
+                             f"adds to the state the last pass reached; got {update!r})")
         if self.direct and not args.get("time_input", True):
             raise ValueError("model.update=direct needs model.time_input=true (the time is all that tells its "
                              "frames apart)")
@@ -254,14 +266,23 @@ class Simulator(nn.Module):
             core_args["n_blocks"] = integer_in(args.get("n_blocks", 2), "model.n_blocks",
                                                2 if args["core"] == "double_gn" else 1, 64, "message-passing blocks")
         extra_out = (stiffness.JOINT_OUT, stiffness.BEAM_OUT) if self.stiffness else (0, 0)
-        self.core = CORES[args["core"]](joint_in, beam_in, self.edge_norm.mean.shape[0],
-                                        JOINT.state_size + extra_out[0], BEAM.state_size + extra_out[1],
-                                        int(args["latent"]), [int(w) for w in args["widths"]], **core_args)
+        make_core = lambda: CORES[args["core"]](  # noqa: E731
+            joint_in, beam_in, self.edge_norm.mean.shape[0], JOINT.state_size + extra_out[0],
+            BEAM.state_size + extra_out[1], int(args["latent"]), [int(w) for w in args["widths"]], **core_args)
+        self.core = make_core()
         if self.stiffness:  # the rigid solve carries the geometry at first; the additive geometry update starts at 0
             for layer, block in zip(output_layers(self.core), (JOINT, BEAM)):
                 with torch.no_grad():
                     layer.weight[block.geometry_slice].zero_()
                     layer.bias[block.geometry_slice].zero_()
+        # passes > 1: correctors, each a core of its own reading the state the pass before reached; they start as
+        # no correction (every output 0: no additive update, and no stiffness wish, so the solve moves nothing)
+        self.correctors = nn.ModuleList([make_core() for _ in range(self.passes - 1)])
+        for corrector in self.correctors:
+            for layer in output_layers(corrector):
+                with torch.no_grad():
+                    layer.weight.zero_()
+                    layer.bias.zero_()
 
     # ------------------------------------------------------------------------------------------- features
     def input_terms(self, block: Block) -> tuple[str, ...]:
@@ -359,20 +380,29 @@ class Simulator(nn.Module):
         return torch.cat(parts_j, -1), torch.cat(parts_b, -1), edges
 
     # ------------------------------------------------------------------------------------------- dynamics
-    def forward(self, joint_state, beam_state, static: Static, t, R=(None, None)):
+    def forward(self, joint_state, beam_state, static: Static, t, R=(None, None), core: nn.Module | None = None):
         """Normalised updates dG: [..., J, JOINT.state_size], [..., B, BEAM.state_size] (frame local or fixed: in
-        the blocks' frames R, which are computed here when not given)."""
+        the blocks' frames R, which are computed here when not given), of the first pass's core unless given."""
         if self.rotated and R[0] is None:
             R = self.frames(joint_state, beam_state, static)
-        return self.core(*self.encode(joint_state, beam_state, static, t, R), static.index)
+        return (core or self.core)(*self.encode(joint_state, beam_state, static, t, R), static.index)
 
     def step(self, joint_state, beam_state, static: Static, t):
         """G(t+1) = G(t) + dG, in raw units (update direct: G(t) = G(0) + dG, called with the design's states G(0)
         and the time t of the frame it answers, learn.rollout.unroll). With pin_fixed_joint the fixed joint's
         geometry does not move (its top face is glued to the support): a boundary condition applied outside the
-        network."""
+        network. With passes > 1 each corrector then reads the state reached and adds its own update (the same
+        kind, at the same step time t), as a Newton iteration corrects a predictor."""
+        joint_state, beam_state = self._pass(self.core, joint_state, beam_state, static, t)
+        for corrector in self.correctors:
+            joint_state, beam_state = self._pass(corrector, joint_state, beam_state, static, t, correction=True)
+        return joint_state, beam_state
+
+    def _pass(self, core: nn.Module, joint_state, beam_state, static: Static, t, correction: bool = False):
+        """One network pass of a step: the core's update applied to the states (step). A correction's additive
+        update is its output times the step's std, without the mean step (an output of 0 changes nothing)."""
         R = self.frames(joint_state, beam_state, static)
-        dj, db = self(joint_state, beam_state, static, t, R)
+        dj, db = self(joint_state, beam_state, static, t, R, core)
         if self.kinematic:
             return self._kinematic_step(joint_state, beam_state, static, dj, db, R)
         if self.stiffness:  # the grid's rigid compromise first (learn/stiffness.py), then the additive update on it
@@ -384,7 +414,10 @@ class Simulator(nn.Module):
                                        joint_raw, beam_raw, None, static.index, scale, plan)
             joint_state, beam_state = stiffness.rigidly_moved(joint_state, beam_state, v, omega, plan.ends,
                                                              self.beam_middle)
-        dj, db = self.joint_delta.inverse(dj), self.beam_delta.inverse(db)
+        if correction:
+            dj, db = dj * self.joint_delta.std, db * self.beam_delta.std
+        else:
+            dj, db = self.joint_delta.inverse(dj), self.beam_delta.inverse(db)
         if self.rotated:
             dj = frames.rotate_state(dj, JOINT, R[0], to_local=False)
             db = frames.rotate_state(db, BEAM, R[1], to_local=False)

@@ -20,8 +20,9 @@ from learn.dataset import (GraphSet, TurnedSet, augment, augment_angles, episode
                            split_missing_checked, split_names)
 from learn.gn import dropout_checked, fraction_checked
 from learn.metrics import multistep_loss, rollout_errors
-from learn.model import (Simulator, integer_in, rollout_lattice_turns_checked, rollout_rotations_checked,
-                         term_retention)
+from learn.model import (Simulator, integer_in, passes_checked, rollout_lattice_turns_checked,
+                         rollout_rotations_checked, term_retention)
+from learn.stiffness import beam_middle_checked
 from learn.rollout import input_floor
 
 log = logging.getLogger(__name__)
@@ -62,6 +63,8 @@ def model_args(cfg_model: DictConfig) -> dict:
             "dropout": dropout_checked(cfg_model.get("dropout", 0.0)),
             "pin_fixed_joint": bool(cfg_model.get("pin_fixed_joint", False)),
             "frame": str(cfg_model.get("frame", "global")), "update": str(cfg_model.get("update", "additive")),
+            "beam_middle": beam_middle_checked(cfg_model.get("beam_middle", "mean")),
+            "passes": passes_checked(cfg_model.get("passes", 1)),
             "rollout_rotations": rollout_rotations_checked(cfg_model.get("rollout_rotations", 1),
                                                            "model.rollout_rotations"),
             "rollout_mirror": bool(cfg_model.get("rollout_mirror", False)),

@@ -196,3 +196,44 @@ def test_rodrigues_rotation_is_the_matrix_exponential_at_every_angle():
     omega = omega.clone().requires_grad_(True)
     stiffness.rotation(omega).sum().backward()
     assert torch.isfinite(omega.grad).all()
+
+
+@pytest.mark.parametrize("update", ["stiffness", "additive"])
+def test_a_corrector_pass_starts_as_no_correction_then_trains_and_compiles(features, update):
+    """model.passes=2: a second core reads the state the first reached and adds its own update. Fresh, its outputs
+    are 0, so the step is the one-pass step of the same first core (for a stiffness model: no wish, the solve moves
+    nothing); it trains (gradients reach both cores) and its compiled rollout is the eager one."""
+    from learn.evaluate import eager_rollout
+    from learn.metrics import multistep_loss
+    from learn.rollout import compile_rollout, graph_inputs
+    data = GraphSet.build(features)
+    args = {"core": "double_gn", "latent": 8, "widths": [16, 8], "update": update, "pin_fixed_joint": True,
+            "global_latent": 4, "stress_input": False}
+    torch.manual_seed(0)
+    two = Simulator.fit({**args, "passes": 2}, data.joint_state, data.beam_state, data.static)
+    one = Simulator.fit(args, data.joint_state, data.beam_state, data.static)
+    one.load_state_dict({k: v for k, v in two.state_dict().items() if not k.startswith("correctors.")})
+    assert len(two.correctors) == 1 and not one.correctors
+    with torch.no_grad():
+        for model in (one, two):
+            model.eval()
+        steps = [m.step(data.joint_state[:3], data.beam_state[:3], data.static, data.t[:3]) for m in (one, two)]
+    for a, b in zip(*steps):
+        torch.testing.assert_close(a, b, atol=1e-6, rtol=0)
+    two.train()
+    with torch.no_grad():  # a corrector that says something, so that the gradients reach through it
+        for p in two.correctors.parameters():
+            p.add_(0.01 * torch.randn_like(p))
+    multistep_loss(two, data, 4).backward()
+    for name, p in two.named_parameters():
+        if name.startswith(("core.", "correctors.")):
+            assert p.grad is not None and torch.isfinite(p.grad).all(), name
+    assert any(p.grad.abs().sum() > 0 for p in two.correctors.parameters())
+    two.eval()
+    with torch.no_grad():
+        compiled = compile_rollout(two, features[0])
+        torch.testing.assert_close(compiled(*graph_inputs(features[1]))[2], eager_rollout(two, features[1])(),
+                                   atol=1e-3, rtol=1e-4)
+    for other in ("direct", "kinematic"):
+        with pytest.raises(ValueError, match=f"model.passes=2: needs model.update=additive or stiffness .*'{other}'"):
+            Simulator.fit({**args, "update": other, "passes": 2}, data.joint_state, data.beam_state, data.static)
