@@ -38,6 +38,10 @@ class Ensemble(nn.Module):
         return any(m.stiffness for m in self.members)
 
     @property
+    def span_input(self) -> bool:  # learn.rollout.CompiledRollout: the beams' spans have the graph's size traced in
+        return any(m.span_input for m in self.members)
+
+    @property
     def args(self) -> dict:
         """What a report records of the model: the first member's model args with the member count, and every
         member's args (PCA sizes aside) when they differ."""

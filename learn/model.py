@@ -108,6 +108,13 @@ class Static:
     index: GraphIndex
     tree: kinematics.Tree | None = None  # built on first use by the kinematic update
     layout: stiffness.Layout | None = None  # built on first use by the stiffness update
+    spans: torch.Tensor | None = None  # built on first use by model.span_input
+
+    def beam_spans(self) -> torch.Tensor:
+        """[..., B, 1] every beam's span ratio (learn.model.beam_spans), the same at every step."""
+        if self.spans is None:
+            self.spans = beam_spans(self.joint_bc, self.index)
+        return self.spans
 
     def stiffness_layout(self) -> stiffness.Layout:
         """Where the stiffness update's terms go in its linear systems (the same at every step)."""
@@ -121,6 +128,33 @@ class Static:
             fixed = self.joint_bc[..., JOINT.bc.slice("fixed")].detach().cpu().numpy()
             self.tree = kinematics.tree(self.index, fixed)
         return self.tree
+
+
+def beam_spans(joint_bc: torch.Tensor, g: GraphIndex) -> torch.Tensor:
+    """[..., B, 1] log(S_along / S_across) per beam: S_along the extent of its design's flat joint centres (the bc
+    positions [..., J, 3] of joint_bc) along the beam's own in-plane direction, S_across the extent across it. A
+    grid whose actuators all bend alike cannot bend both ways (the curvature it asks for is not a developable
+    surface): it rolls along its longer span or snaps into a bowl (docs/learned_simulator.md, sessions 29-30), so
+    > 0 says "I run along the way my grid is longest". Invariant to turning, mirroring and relabelling the design
+    (an extent does not change with the beam's sense), so every copy of a design reads the same."""
+    p = joint_bc[..., JOINT.bc.slice("position")][..., :2]  # [..., J, 2] mm
+    a, c = g.beam_ends()
+    d = p.index_select(-2, c) - p.index_select(-2, a)
+    along = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-9)  # [..., B, 2]
+    across = torch.stack([-along[..., 1], along[..., 0]], -1)
+    design, local, G, N = stiffness.design_slots(g, p.shape[-2])
+    slot = design * N + local
+    padded = p.new_zeros(*p.shape[:-2], G * N, 2).index_copy(-2, slot, p).unflatten(-2, (G, N))
+    present = torch.zeros(G * N).index_fill(0, slot, 1.0).view(G, N) > 0.5
+    beam_design = g.beam_graph if g.beam_graph is not None else torch.zeros(g.n_beams, dtype=torch.long)
+    mine, mask = padded.index_select(-3, beam_design), present.index_select(0, beam_design)  # [..., B, N, 2], [B, N]
+
+    def extent(u: torch.Tensor) -> torch.Tensor:
+        s = (mine * u[..., None, :]).sum(-1)  # [..., B, N]
+        inf = torch.tensor(float("inf"), dtype=s.dtype)
+        return torch.where(mask, s, -inf).amax(-1) - torch.where(mask, s, inf).amin(-1)
+
+    return torch.log(extent(along).clamp_min(1e-6) / extent(across).clamp_min(1e-6))[..., None]
 
 
 def with_current_position(bc: torch.Tensor, state: torch.Tensor, block: Block) -> torch.Tensor:
@@ -218,6 +252,8 @@ class Simulator(nn.Module):
           them, and the additive dG is added on top; frame global only),
           passes (int in [1, 4], default 1: network passes per step, each with its own core; a pass after the
           first, a corrector, reads the state the pass before reached and adds its update, additive or stiffness),
+          span_input (bool, default false: every beam also reads beam_spans, log of its design's flat span along it
+          over the span across it: which way an all-one-kind grid rolls),
           stress_input (bool, default true: the stress terms are network inputs; false:
           predicted and carried in the state, not read back), pca ({term: [D, K]} for every name in TERMS)
           -- all plain types, so they are saved in checkpoints.
@@ -254,8 +290,9 @@ class Simulator(nn.Module):
             self.joint_rel_delta = Normalizer(JOINT.geometry.size)
             self.beam_rel_delta = Normalizer(BEAM.geometry.size)
         extra = (1 if args.get("time_input", True) else 0) + (3 if self.local else 0)
+        self.span_input = bool(args.get("span_input", False))
         joint_in = sum(self.pca[t].k for t in self.input_terms(JOINT)) + extra
-        beam_in = sum(self.pca[t].k for t in self.input_terms(BEAM)) + extra
+        beam_in = sum(self.pca[t].k for t in self.input_terms(BEAM)) + extra + (1 if self.span_input else 0)
         core_args = dict(layer_norm=bool(args.get("layer_norm", False)),
                          global_latent=global_latent_checked(args.get("global_latent", 0)),
                          activation=activation_checked(args.get("activation", "relu")),
@@ -376,6 +413,9 @@ class Simulator(nn.Module):
         if self.local:
             parts_j.append(frames.gravity(R[0]))
             parts_b.append(frames.gravity(R[1]))
+        if self.span_input:
+            spans = static.beam_spans()
+            parts_b.append(spans.expand(*lead, *spans.shape[-2:]))
         edges = self.edge_norm(self.edge_features(joint_state, beam_state, static, R))
         return torch.cat(parts_j, -1), torch.cat(parts_b, -1), edges
 

@@ -158,8 +158,9 @@ class CompiledRollout:
         self(*graph_inputs(example))
 
     def key(self, inputs: tuple[torch.Tensor, ...]):
-        if not self.model.kinematic:  # a stiffness model's solve has the graph's size traced in
-            return tuple(inputs[0].shape[-2:]) + tuple(inputs[1].shape[-2:]) if self.model.stiffness else None
+        if not self.model.kinematic:  # a stiffness model's solve and the beams' spans have the graph's size traced in
+            sized = self.model.stiffness or self.model.span_input
+            return tuple(inputs[0].shape[-2:]) + tuple(inputs[1].shape[-2:]) if sized else None
         joint_bc, senders, receivers, edge_beam = inputs[2], inputs[4], inputs[5], inputs[6]
         fixed = joint_bc[:, JOINT.bc.slice("fixed")]
         return tuple(tuple(x.reshape(-1).tolist()) for x in (senders, receivers, edge_beam, fixed))

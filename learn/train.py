@@ -65,6 +65,7 @@ def model_args(cfg_model: DictConfig) -> dict:
             "frame": str(cfg_model.get("frame", "global")), "update": str(cfg_model.get("update", "additive")),
             "beam_middle": beam_middle_checked(cfg_model.get("beam_middle", "mean")),
             "passes": passes_checked(cfg_model.get("passes", 1)),
+            "span_input": bool(cfg_model.get("span_input", False)),
             "rollout_rotations": rollout_rotations_checked(cfg_model.get("rollout_rotations", 1),
                                                            "model.rollout_rotations"),
             "rollout_mirror": bool(cfg_model.get("rollout_mirror", False)),

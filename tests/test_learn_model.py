@@ -524,3 +524,53 @@ def test_direct_update_answers_every_frame_from_the_design_alone(features, frame
     assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in model.parameters())
     with pytest.raises(ValueError, match="model.update=direct needs model.time_input=true"):
         Simulator.fit({**args, "time_input": False}, data.joint_state, data.beam_state, data.static)
+
+
+def test_beam_spans_are_the_grids_span_along_each_beam_over_across_it_and_every_copy_reads_the_same(features):
+    from learn.model import beam_spans, static_from
+    from learn.symmetry import rotation_z
+    # a 3 x 3 rectangle, 100 mm between columns and 50 between rows, fixed at the centre: a beam along i spans 200 mm
+    # of its grid along itself and 100 across, one along j the reverse
+    ij = [(i, j) for j in range(3) for i in range(3)]
+    position = np.array([[100.0 * (i - 1), 50.0 * (j - 1), 0.0] for i, j in ij])
+    joint_bc = np.concatenate([np.zeros((9, 1)), position], 1)
+    beams = [(3 * j + i, 3 * j + i + 1) for j in range(3) for i in range(2)] + \
+            [(3 * j + i, 3 * j + i + 3) for j in range(2) for i in range(3)]
+    g = Incidence.from_beams(np.array(beams), 9).tensors()
+    spans = beam_spans(torch.as_tensor(joint_bc, dtype=torch.float64), g)[:, 0]
+    np.testing.assert_allclose(spans.numpy(), [np.log(2.0)] * 6 + [-np.log(2.0)] * 6, atol=1e-12)
+    # turned, mirrored, relabelled: the same number per beam; two designs as one graph: each its own
+    f = features[0]
+    want = beam_spans(static_from(f.joint_bc, f.beam_bc, f.incidence).joint_bc, f.incidence.tensors())
+    for copy in (f.rotated(rotation_z(0.7)), f.mirrored(), f.half_turned(), f.quarter_turned()):
+        got = beam_spans(static_from(copy.joint_bc, copy.beam_bc, copy.incidence).joint_bc, copy.incidence.tensors())
+        torch.testing.assert_close(got, want, atol=1e-5, rtol=0)
+    data = GraphSet.build(features[:3])
+    alone = [beam_spans(static_from(x.joint_bc, x.beam_bc, x.incidence).joint_bc, x.incidence.tensors())
+             for x in features[:3]]
+    torch.testing.assert_close(data.static.beam_spans(), torch.cat(alone), atol=1e-6, rtol=0)
+    assert data.static.beam_spans().abs().max() > 0.01  # the synthetic designs are not all square
+
+
+def test_a_span_input_model_reads_the_spans_and_compiles(features):
+    from learn.evaluate import eager_rollout
+    from learn.rollout import compile_rollout, graph_inputs
+    data = GraphSet.build(features[:3])
+    args = {"core": "double_gn", "latent": 8, "widths": [16, 8], "pin_fixed_joint": True, "global_latent": 4}
+    torch.manual_seed(0)
+    model = Simulator.fit({**args, "span_input": True}, data.joint_state, data.beam_state, data.static).eval()
+    plain = Simulator.fit(args, data.joint_state, data.beam_state, data.static)
+    assert model.core.blocks[0].beam_update[0].in_features == plain.core.blocks[0].beam_update[0].in_features + 1
+    with torch.no_grad():
+        j, b = model.step(data.joint_state[:1], data.beam_state[:1], data.static, data.t[:1])
+        for layer in model.core.modules():  # make the spans matter, then change them: the step changes
+            if isinstance(layer, torch.nn.Linear):
+                layer.weight.add_(0.05)
+        before = model.step(data.joint_state[:1], data.beam_state[:1], data.static, data.t[:1])[1]
+        data.static.spans = data.static.beam_spans() + 1.0
+        after = model.step(data.joint_state[:1], data.beam_state[:1], data.static, data.t[:1])[1]
+        assert (after - before).abs().max() > 1e-4
+        data.static.spans = None
+        compiled = compile_rollout(model, features[0])
+        torch.testing.assert_close(compiled(*graph_inputs(features[1]))[2], eager_rollout(model, features[1])(),
+                                   atol=1e-3, rtol=1e-4)

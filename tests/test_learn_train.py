@@ -323,7 +323,7 @@ def test_every_model_config_composes_and_trains(data_dir, tmp_path, model_name):
 @pytest.mark.parametrize("option", ["model.update=kinematic", "loss_geometry=points", "rollout_gradient=stop",
                                     "rollout_gradient=0.5", "model.frame=fixed", "rotations_redraw=true", "lattice_turns=4",
                                     "chord_weight=1.0", "precision=bf16", "teacher_weight=1.0",
-                                    "model.update=direct", "model.update=stiffness"])
+                                    "model.update=direct", "model.update=stiffness", "model.span_input=true"])
 def test_training_options_reduce_the_loss(data_dir, tmp_path, option):
     summary = train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=16", "optim.lr=3e-3", "batch_size=1",
                                           "rollout_horizon=3", option)))
