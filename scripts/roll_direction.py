@@ -14,12 +14,12 @@ roll_direction.png (s_i - s_j against log(span_i / span_j)).
 from __future__ import annotations
 
 import argparse
-import csv
 from pathlib import Path
 
 import matplotlib
 import numpy as np
 
+from data_schema import atomic
 from learn.dataset import episode_paths, load_features
 from learn.graph import JOINT
 
@@ -29,10 +29,15 @@ import matplotlib.pyplot as plt  # noqa: E402
 ROLLED = 0.15  # |s_i - s_j| above this: one way has curled clearly more than the other
 
 
+def flat_centres(f) -> np.ndarray:
+    """[J, 2] the design's flat joint centres (their bc positions, relative to the fixed joint)."""
+    return f.joint_bc[:, JOINT.bc.slice("position")][:, :2]
+
+
 def directions(f) -> tuple[np.ndarray, np.ndarray]:
     """The mean in-plane unit direction of a design's beams along i and of those along j (each beam pointed along
     +i or +j by its lattice sense, so that they add up)."""
-    p = f.joint_bc[:, JOINT.bc.slice("position")][:, :2]
+    p = flat_centres(f)
     beams = np.stack([f.incidence.senders[:f.incidence.n_beams], f.incidence.receivers[:f.incidence.n_beams]], 1)
     along_i = f.beams_along_i()
     out = []
@@ -50,8 +55,7 @@ def extent(points: np.ndarray, u: np.ndarray) -> float:
 
 def roll_of(f) -> dict:
     ui, uj = directions(f)
-    flat = f.joint_bc[:, JOINT.bc.slice("position")][:, :2]
-    span_i, span_j = np.ptp(flat @ ui), np.ptp(flat @ uj)
+    span_i, span_j = extent(flat_centres(f), ui), extent(flat_centres(f), uj)
     s_i = extent(f.fea_points[-1], ui) / extent(f.fea_points[0], ui)
     s_j = extent(f.fea_points[-1], uj) / extent(f.fea_points[0], uj)
     rolled = abs(s_i - s_j) > ROLLED
@@ -87,12 +91,9 @@ def main() -> None:
     rows = [roll_of(f) for f in load_features(paths) if f.actuators in ("all up", "all down")]
     if not rows:
         raise SystemExit(f"no all-up or all-down designs among the {len(paths)} episodes of {args.data_dir}")
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "roll_direction.md").write_text(summary(rows))
-    with open(args.out / "roll_direction.csv", "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    text = summary(rows)
+    atomic.write_text(args.out / "roll_direction.md", text)
+    atomic.write_csv(args.out / "roll_direction.csv", rows, list(rows[0]))
     fig, ax = plt.subplots(figsize=(6, 4.5))
     for kind, marker in (("all up", "^"), ("all down", "v")):
         mine = [r for r in rows if r["actuators"] == kind]
@@ -107,7 +108,7 @@ def main() -> None:
     ax.legend()
     fig.tight_layout()
     fig.savefig(args.out / "roll_direction.png", dpi=120)
-    print("\n".join(summary(rows).split("\n")[:4]) + f"\nwritten to {args.out}")
+    print("\n".join(text.split("\n")[:4]) + f"\nwritten to {args.out}")
 
 
 if __name__ == "__main__":
