@@ -20,6 +20,7 @@ from learn import ensemble
 from learn.dataset import GraphSet, episode_paths, load_features
 from learn.features import EpisodeFeatures, rebuild_all_points
 from learn.model import Simulator, static_from
+from learn.roll import ONE_KIND, ROLLED, roll
 from learn.rollout import answer_unroll, compile_rollout, graph_inputs, input_floor, reference, rollout
 from learn.validity import check
 
@@ -128,7 +129,28 @@ def design_statistics(designs: list[dict], flag_error_rel: float | None = None) 
         out["by_frame"] = frames
     if flag_error_rel is not None:
         out["validity_measured"] = validity_measured(designs, flag_error_rel)
+    agreement = roll_agreement(designs)
+    if agreement is not None:
+        out["roll_agreement"] = agreement
     return out
+
+
+def roll_agreement(designs: list[dict]) -> dict | None:
+    """Of the all-one-kind designs (those with a "roll": s_i - s_j of the answer and of the FEA, learn.roll), how
+    many the FEA rolls (|s_i - s_j| > ROLLED) and how many of those the answer rolls the same way, leaves unrolled or
+    rolls the other way; None when there are none."""
+    rolls = [d["roll"] for d in designs if "roll" in d]
+    if not rolls:
+        return None
+    fea = np.array([x["fea"] for x in rolls])
+    answer = np.array([x["answer"] for x in rolls])
+    rolled = np.abs(fea) > ROLLED
+    answered = np.abs(answer) > ROLLED
+    return {"n_one_kind": len(rolls), "fea_rolled": int(rolled.sum()),
+            "same_way": int((rolled & answered & (np.sign(answer) == np.sign(fea))).sum()),
+            "unrolled": int((rolled & ~answered).sum()),
+            "other_way": int((rolled & answered & (np.sign(answer) != np.sign(fea))).sum()),
+            "roll_gap": distribution(np.abs(answer - fea))}
 
 
 def fea_steps(f: EpisodeFeatures) -> np.ndarray:
@@ -243,7 +265,9 @@ def evaluate(cfg: DictConfig) -> dict:
             "representation_floor": float(floor.max() / f.design_size),
             "input_floor": float(seen.max() / f.design_size),
             "fea_s": f.fea_seconds, "valid": verdict.valid, "validity": verdict.as_dict(),
-            "spread_rel": verdict.max_spread_rel})
+            "spread_rel": verdict.max_spread_rel,
+            **({"roll": {"answer": roll(f, r.local_points), "fea": roll(f, f.fea_points)}}
+               if f.actuators in ONE_KIND else {})})
         rollouts.append(r)
 
     times = timings(model, features, int(cfg.timing_repeats))
@@ -325,6 +349,12 @@ def markdown(report: dict, with_designs: bool = True) -> str:
                   f"such designs flagged, {v['false_flags']} of {report['n_designs'] - v['n_bad']} others flagged "
                   f"needlessly; passed designs {_pct(v['passed']['median'])} median, {_pct(v['passed']['p95'])} p95; "
                   f"flagged {_pct(v['flagged']['median'])} median. Spearman with the error: {rho}"]
+    if "roll_agreement" in report:
+        a = report["roll_agreement"]
+        lines += ["", f"All-one-kind designs ({a['n_one_kind']}): the FEA rolls {a['fea_rolled']} (|s_i - s_j| > "
+                  f"{ROLLED}); the answer rolls {a['same_way']} of them the same way, {a['unrolled']} not, "
+                  f"{a['other_way']} the other way; |answer - FEA| of s_i - s_j {a['roll_gap']['median']:.3f} median, "
+                  f"{a['roll_gap']['worst']:.3f} worst"]
     if report.get("timing_busy"):
         lines += ["", f"Timed on a busy machine (1-minute load {report['load_average']:.1f} on {report['cpus']} "
                   "CPUs): the times are upper bounds and the speed-ups lower bounds; time on an idle machine with "

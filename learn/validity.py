@@ -10,8 +10,9 @@ Symptoms, all measurable without FEA:
 - unrolled (designs whose actuators are all one kind): such a grid cannot take the doubly curved bowl its
   actuators want without stretching, so it rolls one way into a near-cylinder (37 of 44 held-out FEA answers, session
   29) or, rarely, closes into a bowl by a snap. An answer that has not rolled sits on the symmetric branch between
-  the two, where the FEA goes one way or the other: 1 - |s_x - s_y| with s the final frame's x and y extents over the
-  flat design's (1: no roll at all; 0 for mixed designs, which have no such branch);
+  the two, where the FEA goes one way or the other: 1 - |s_i - s_j| with s the final frame's extents along the
+  lattice's i and j directions over the flat design's (learn.roll; 1: no roll at all; 0 for mixed designs, which
+  have no such branch);
 - conditions: the episode's material, residual stress, body force, mesh or design size lie outside those of the
   training episodes (learn.conditions). The graphs do not carry them, so the other two checks cannot see them;
 - spread (ensembles only, learn.ensemble): the members disagree about a point by more than a fraction of the
@@ -35,6 +36,7 @@ from learn.conditions import REL_TOL, outside
 from learn.ensemble import Ensemble, member_spread, members_of
 from learn.features import shared_point_pairs
 from learn.model import Simulator, static_from
+from learn.roll import ONE_KIND, roll
 from learn.rollout import Rollout
 
 
@@ -47,7 +49,7 @@ class Verdict:
     error_lower_bound_rel: float = 0.0  # half of it: the answer's max error / design size is at least this
     dislocation_per_frame: list[float] = field(default_factory=list)
     out_of_range_fraction: float = 0.0  # of (frame, block) pairs with a coefficient outside the training range
-    unrolled_one_kind: float = 0.0  # all one kind: 1 - |s_x - s_y| of the final shape (unrolled above); mixed: 0
+    unrolled_one_kind: float = 0.0  # all one kind: 1 - |s_i - s_j| of the final shape (unrolled above); mixed: 0
     first_bad_frame: int | None = None
     max_spread_rel: float | None = None  # ensembles: largest member-to-mean point distance / design size
     spread_per_frame: list[float] = field(default_factory=list)  # the same per frame
@@ -65,13 +67,12 @@ def dislocation(r: Rollout) -> np.ndarray:
 
 
 def unrolled_one_kind(r: Rollout) -> float:
-    """1 - |s_x - s_y|, s the final frame's x and y extents over frame 0's, for a design whose actuators are all one
-    kind (an answer that has not chosen a direction to roll in); 0 for a mixed design."""
-    if r.features.actuators not in ("all up", "all down"):
+    """1 - |s_i - s_j|, s the final frame's extents along the design's lattice directions i and j over frame 0's
+    (learn.roll), for a design whose actuators are all one kind (an answer that has not chosen a direction to roll
+    in); 0 for a mixed design."""
+    if r.features.actuators not in ONE_KIND:
         return 0.0
-    extent = lambda x: np.ptp(x[:, :2], axis=0)  # noqa: E731
-    s = extent(r.points[-1]) / np.maximum(extent(r.points[0]), 1e-9)
-    return float(1.0 - abs(s[0] - s[1]))
+    return float(1.0 - abs(roll(r.features, r.points)))
 
 
 def out_of_range(model: Simulator | Ensemble, r: Rollout, margin: float) -> np.ndarray:
@@ -117,7 +118,7 @@ def check(model: Simulator | Ensemble, r: Rollout, max_dislocation_rel: float = 
     if unrolled > max_unrolled_one_kind:  # a property of the answer's last frame
         bad[-1] = True
         reasons.append(f"all actuators {r.features.actuators.removeprefix('all ')} and the answer has not rolled "
-                       f"(1 - |s_x - s_y| = {unrolled:.3g} > {max_unrolled_one_kind:.3g}): a bifurcation, where the "
+                       f"(1 - |s_i - s_j| = {unrolled:.3g} > {max_unrolled_one_kind:.3g}): a bifurcation, where the "
                        "FEA rolls one way or snaps into a bowl")
     spread = None
     if r.member_points is not None:

@@ -5,9 +5,9 @@
 A flat grid whose actuators all bend one way asks for the same curvature along its rows and its columns: a bowl,
 which a sheet cannot take without stretching. So it rolls one way (a near-cylinder) or snaps into a bowl, a
 bifurcation; the worst answers of every learned model so far are such designs answered unrolled (session 29). Per
-all-up or all-down design: the grid's span along i over its span along j (the flat joint centres' extents along the
-mean direction of its beams along i and along j; learn.model.beam_spans gives each beam its own), and the final
-frame's extents along those directions over the flat ones, s_i and s_j. Rolled: |s_i - s_j| > ROLLED. Writes
+all-up or all-down design (learn.roll): the grid's span along i over its span along j (the flat joint centres' extents
+along the mean direction of its beams along i and along j; learn.model.beam_spans gives each beam its own), and the
+final frame's extents along those directions over the flat ones, s_i and s_j. Rolled: |s_i - s_j| > ROLLED. Writes
 roll_direction.md (the count that rolled, and how many along the longer span), roll_direction.csv (per design) and
 roll_direction.png (s_i - s_j against log(span_i / span_j)).
 """
@@ -21,47 +21,18 @@ import numpy as np
 
 from data_schema import atomic
 from learn.dataset import episode_paths, load_features
-from learn.graph import JOINT
+from learn.roll import ONE_KIND, ROLLED, shrinks, span_ratio
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-ROLLED = 0.15  # |s_i - s_j| above this: one way has curled clearly more than the other
-
-
-def flat_centres(f) -> np.ndarray:
-    """[J, 2] the design's flat joint centres (their bc positions, relative to the fixed joint)."""
-    return f.joint_bc[:, JOINT.bc.slice("position")][:, :2]
-
-
-def directions(f) -> tuple[np.ndarray, np.ndarray]:
-    """The mean in-plane unit direction of a design's beams along i and of those along j (each beam pointed along
-    +i or +j by its lattice sense, so that they add up)."""
-    p = flat_centres(f)
-    beams = np.stack([f.incidence.senders[:f.incidence.n_beams], f.incidence.receivers[:f.incidence.n_beams]], 1)
-    along_i = f.beams_along_i()
-    out = []
-    for mask in (along_i, ~along_i):
-        d = p[beams[mask, 1]] - p[beams[mask, 0]]
-        d = d * np.sign(d @ d[0])[:, None]  # one sense for all
-        u = d.sum(0)
-        out.append(u / np.linalg.norm(u))
-    return out[0], out[1]
-
-
-def extent(points: np.ndarray, u: np.ndarray) -> float:
-    return float(np.ptp(points[:, :2] @ u))
-
 
 def roll_of(f) -> dict:
-    ui, uj = directions(f)
-    span_i, span_j = extent(flat_centres(f), ui), extent(flat_centres(f), uj)
-    s_i = extent(f.fea_points[-1], ui) / extent(f.fea_points[0], ui)
-    s_j = extent(f.fea_points[-1], uj) / extent(f.fea_points[0], uj)
+    ratio = span_ratio(f)
+    s_i, s_j = shrinks(f, f.fea_points)
     rolled = abs(s_i - s_j) > ROLLED
-    return {"episode": f.name, "actuators": f.actuators, "family": f.family, "span_ratio": span_i / span_j,
-            "s_i": s_i, "s_j": s_j, "rolled": rolled,
-            "along_longer": rolled and (s_i < s_j) == (span_i > span_j)}
+    return {"episode": f.name, "actuators": f.actuators, "family": f.family, "span_ratio": ratio,
+            "s_i": s_i, "s_j": s_j, "rolled": rolled, "along_longer": rolled and (s_i < s_j) == (ratio > 1)}
 
 
 def summary(rows: list[dict]) -> str:
@@ -88,7 +59,7 @@ def main() -> None:
     paths = episode_paths(args.data_dir)
     if not paths:
         raise SystemExit(f"no episodes in {args.data_dir}")
-    rows = [roll_of(f) for f in load_features(paths) if f.actuators in ("all up", "all down")]
+    rows = [roll_of(f) for f in load_features(paths) if f.actuators in ONE_KIND]
     if not rows:
         raise SystemExit(f"no all-up or all-down designs among the {len(paths)} episodes of {args.data_dir}")
     text = summary(rows)

@@ -22,6 +22,7 @@ from learn.features import extract, rebuild_all_points
 from learn.graph import BEAM, JOINT
 from learn.metrics import rollout_errors
 from learn.model import Simulator
+from learn.roll import roll
 from learn.rollout import reference, rollout
 from learn.train import evaluate_split, train
 from learn.validity import check
@@ -224,6 +225,25 @@ def test_evaluate_writes_the_report(trained, tmp_path):
                                       "flag_error_rel=1.5"]))
 
 
+def test_evaluate_reports_the_roll_of_every_all_one_kind_design_beside_the_feas(trained, tmp_path):
+    run, _ = trained
+    ep = synthetic_episode(3, 3, 5, 3, 3, frames=11, seed=7)
+    ep.beam_kind[:] = 0  # all up
+    write_episode(tmp_path / "data" / "up.h5", ep)
+    write_episode(tmp_path / "data" / "mixed.h5", synthetic_episode(3, 3, 5, 3, 3, frames=11, seed=8))
+    report = evaluate(cfg_for("evaluate", [f"checkpoint={run / 'best.pt'}", f"data_dir={tmp_path / 'data'}",
+                                           "split=all", f"out_dir={tmp_path / 'out'}", "plots=false",
+                                           "timing_repeats=1"]))
+    by_name = {d["name"]: d for d in report["designs"]}
+    assert "roll" not in by_name["mixed.h5"]
+    f = load_features([tmp_path / "data" / "up.h5"])[0]
+    answer = rollout(checkpoint.model_from(checkpoint.load(run / "best.pt")).eval(), f)
+    assert by_name["up.h5"]["roll"]["fea"] == pytest.approx(roll(f, f.fea_points))
+    assert by_name["up.h5"]["roll"]["answer"] == pytest.approx(roll(f, answer.local_points), abs=1e-6)
+    assert report["roll_agreement"]["n_one_kind"] == 1
+    assert "All-one-kind designs (1)" in (tmp_path / "out" / "report.md").read_text()
+
+
 def test_validity_measured_counts_the_caught_and_the_needless_flags_and_ranks_the_indicators():
     from learn.evaluate import validity_measured
     designs = [{"max_rel_error": e, "valid": ok,
@@ -236,6 +256,18 @@ def test_validity_measured_counts_the_caught_and_the_needless_flags_and_ranks_th
     assert v["spearman"]["max_dislocation_rel"] == pytest.approx(1.0)  # orders the designs as the error does
     assert v["spearman"]["out_of_range_fraction"] == pytest.approx(0.0)  # ranks 3 2 1 0 4 vs 0 1 2 3 4: sum d^2 = 20
     assert "max_spread_rel" not in v["spearman"]
+
+
+def test_roll_agreement_counts_the_fea_rolls_the_answer_follows_misses_or_turns_the_other_way():
+    """learn.evaluate.roll_agreement over the all-one-kind designs (those with a "roll": s_i - s_j of answer and FEA):
+    of the FEA's rolls (|s_i - s_j| > 0.15), the answers rolled the same way, not at all, or the other way."""
+    from learn.evaluate import roll_agreement
+    rolls = [(-0.4, -0.35), (0.3, 0.05), (0.5, -0.2), (0.05, 0.3), (-0.3, -0.1)]  # (fea, answer)
+    designs = [{"roll": {"fea": fea, "answer": ans}} for fea, ans in rolls] + [{}]  # and a mixed design
+    a = roll_agreement(designs)
+    assert (a["n_one_kind"], a["fea_rolled"], a["same_way"], a["unrolled"], a["other_way"]) == (5, 4, 1, 2, 1)
+    assert a["roll_gap"]["worst"] == pytest.approx(0.7) and a["roll_gap"]["median"] == pytest.approx(0.25)
+    assert roll_agreement([{}, {}]) is None
 
 
 def test_the_actuator_group_is_read_from_the_beams_kind_flags():

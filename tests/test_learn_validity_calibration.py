@@ -87,8 +87,8 @@ def test_the_check_defaults_are_the_calibrated_thresholds_of_conf():
 
 
 def test_an_answer_of_a_one_kind_design_that_has_not_rolled_is_the_unrolled_indicator():
-    """learn.validity.unrolled_one_kind: 1 - |s_x - s_y| (s: final x, y extents / flat ones) for all-up or all-down
-    designs, 0 for mixed ones; the check flags its last frame above max_unrolled_one_kind."""
+    """learn.validity.unrolled_one_kind: 1 - |s_i - s_j| (s: final extents along the lattice's i, j / flat ones) for
+    all-up or all-down designs, 0 for mixed ones; the check flags its last frame above max_unrolled_one_kind."""
     from dataclasses import replace
 
     from data_schema.testing import synthetic_episode
@@ -108,6 +108,37 @@ def test_an_answer_of_a_one_kind_design_that_has_not_rolled_is_the_unrolled_indi
     assert unrolled_one_kind(replace(r, points=np.stack([flat, bowl]))) == pytest.approx(1.0)
     ep.beam_kind[0] = 0  # one up among the downs: mixed, no such branch
     assert unrolled_one_kind(replace(reference(extract(ep)), points=np.stack([flat, bowl]))) == 0.0
+
+
+def test_the_roll_is_measured_along_the_lattice_whatever_its_angle_to_x():
+    """A grid turned 45 deg about z that rolls along its lattice direction i shrinks alike along x and y: measured
+    along x and y (as before session 31) it would pass as unrolled (1 - |s_x - s_y| near 1); along the lattice
+    (learn.roll) it is rolled, and a bowl still is not."""
+    from dataclasses import replace
+
+    from data_schema.testing import synthetic_episode
+    from learn.features import extract
+    from learn.roll import lattice_directions, roll
+    from learn.rollout import reference
+    from learn.validity import unrolled_one_kind
+
+    ep = synthetic_episode(3, 3, 5, 3, 3, frames=3, seed=0)
+    ep.beam_kind[:] = 0  # all up
+    c, s = np.cos(np.pi / 4), np.sin(np.pi / 4)
+    f = extract(ep).rotated(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]))
+    r = reference(f)
+    ui, uj = lattice_directions(f)
+    assert abs(abs(ui @ np.array([c, s])) - 1) < 1e-6  # i turned with the design
+    flat = r.points[0]
+    rolled = flat.copy()
+    rolled[:, :2] -= 0.6 * np.outer((flat[:, :2] - flat[:, :2].min(0)) @ ui, ui)  # i extent to 40 %, j kept
+    xy = np.ptp(rolled[:, :2], 0) / np.ptp(flat[:, :2], 0)
+    assert 1 - abs(xy[0] - xy[1]) > 0.95  # along x and y it looks unrolled
+    assert roll(f, np.stack([flat, rolled])) == pytest.approx(-0.6)
+    assert unrolled_one_kind(replace(r, points=np.stack([flat, rolled]))) == pytest.approx(0.4)
+    bowl = flat.copy()
+    bowl[:, :2] *= 0.8
+    assert unrolled_one_kind(replace(r, points=np.stack([flat, bowl]))) == pytest.approx(1.0)
 
 
 def test_a_third_indicator_joins_the_joint_rule_when_it_catches_what_the_others_miss():

@@ -7,15 +7,16 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "scripts"))
-from roll_direction import directions, roll_of  # noqa: E402
+from roll_direction import roll_of  # noqa: E402
 
 from data_schema.testing import synthetic_episode  # noqa: E402
 from learn.features import extract  # noqa: E402
+from learn.roll import lattice_directions  # noqa: E402
 
 
 def test_a_grid_curled_along_its_longer_span_is_rolled_that_way_and_a_bowl_is_not():
     f = extract(synthetic_episode(3, 3, 5, 3, 3, 5, seed=1), name="ep.h5")
-    ui, uj = directions(f)
+    ui, uj = lattice_directions(f)
     assert abs(np.linalg.norm(ui) - 1) < 1e-9 and abs(ui @ uj) < 0.5  # unit, and i and j far from parallel
     flat = f.fea_points[0]
     r = roll_of(f)
