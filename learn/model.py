@@ -249,7 +249,9 @@ class Simulator(nn.Module):
           the thesis' step-by-step update, learn.rollout.unroll; "stiffness": the network also predicts every
           beam's stiffness and natural increment and every joint's anchoring and load, one linear solve per
           design moves the joints rigidly (the matrix stiffness method, learn/stiffness.py) and the beams with
-          them, and the additive dG is added on top; frame global only),
+          them, and the additive dG is added on top; with frame local every beam's stiffness and natural increment
+          and every joint's anchoring and own motion are read in the block's own frame, a law of what the block
+          sees there),
           passes (int in [1, 4], default 1: network passes per step, each with its own core; a pass after the
           first, a corrector, reads the state the pass before reached and adds its update, additive or stiffness),
           span_input (bool, default false: every beam also reads beam_spans, log of its design's flat span along it
@@ -272,8 +274,6 @@ class Simulator(nn.Module):
         self.kinematic = update == "kinematic"
         self.direct = update == "direct"  # every frame from the design: G(0) + dG(G(0), t)
         self.stiffness = update == "stiffness"
-        if self.stiffness and args.get("frame", "global") != "global":
-            raise ValueError(f"model.update=stiffness needs model.frame=global (got {args.get('frame')!r})")
         self.beam_middle = stiffness.beam_middle_checked(args.get("beam_middle", "mean"))
         self.passes = passes_checked(args.get("passes", 1))
         if self.passes > 1 and (self.direct or self.kinematic):
@@ -451,7 +451,8 @@ class Simulator(nn.Module):
             scale = self.joint_delta.std[JOINT.origin_slice].mean()  # mm: a joint centre's step
             plan = static.stiffness_layout()  # built at the first step, kept for the rest
             v, omega = stiffness.solve(joint_state[..., JOINT.origin_slice], beam_state[..., BEAM.origin_slice],
-                                       joint_raw, beam_raw, None, static.index, scale, plan)
+                                       joint_raw, beam_raw, None, static.index, scale, plan,
+                                       R if self.rotated else None)
             joint_state, beam_state = stiffness.rigidly_moved(joint_state, beam_state, v, omega, plan.ends,
                                                              self.beam_middle)
         if correction:

@@ -136,6 +136,7 @@ class Layout:
     beam_dof: torch.Tensor  # [B * 12] each beam's two joints' unknowns
     pairs: torch.Tensor  # [B * 144] each beam's 12 x 12 block in the stacked G * n * n matrices
     diagonal: torch.Tensor  # [J * 6] each joint's unknowns on the diagonal
+    joint_pairs: torch.Tensor  # [J * 36] each joint's 6 x 6 block (its anchoring, when read in the joint's frame)
     free: torch.Tensor  # [..., G, n] 1 for the unknowns solved for, 0 for the fixed joint's and the padding's
     n_designs: int
     n: int
@@ -151,21 +152,28 @@ def layout(g: GraphIndex, fixed: torch.Tensor) -> Layout:
     beam_dof = torch.cat([joint_dof.index_select(0, a), joint_dof.index_select(0, c)], -1)  # [B, 12]
     pairs = (beam_dof // n)[:, :, None] * n * n + (beam_dof % n)[:, :, None] * n + (beam_dof % n)[:, None, :]
     diagonal = design[:, None] * n * n + (6 * local[:, None] + k6) * (n + 1)
+    own = (6 * local[:, None] + k6)  # [J, 6] each joint's unknowns within its design
+    joint_pairs = design[:, None, None] * n * n + own[:, :, None] * n + own[:, None, :]
     held = (1.0 - fixed.double())[..., None].expand(*fixed.shape, 6).reshape(*fixed.shape[:-1], -1)
     free = torch.zeros(*fixed.shape[:-1], G * n, dtype=torch.float64).index_add(-1, joint_dof.reshape(-1), held)
     return Layout((a, c), joint_dof.reshape(-1), beam_dof.reshape(-1), pairs.reshape(-1), diagonal.reshape(-1),
-                  free.unflatten(-1, (G, n)), G, n)
+                  joint_pairs.reshape(-1), free.unflatten(-1, (G, n)), G, n)
 
 
 def solve(centres: torch.Tensor, middles: torch.Tensor, joint_raw: torch.Tensor, beam_raw: torch.Tensor,
           fixed: torch.Tensor | None, g: GraphIndex, scale: torch.Tensor,
-          plan: Layout | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+          plan: Layout | None = None, frames: tuple[torch.Tensor, torch.Tensor] | None = None
+          ) -> tuple[torch.Tensor, torch.Tensor]:
     """Joint centres [..., J, 3], beam middle centres [..., B, 3], the network's stiffness outputs [..., J, JOINT_OUT]
     and [..., B, BEAM_OUT], the fixed flags [..., J] (broadcast; only read to make the layout), the step scale (mm),
     and the systems' layout (layout(g, fixed): the beams' ends and where every term goes), made here when not
     given -> every joint's translation v [..., J, 3] (mm) and rotation omega [..., J, 3] (rad) at the minimum (module
     doc); the fixed joint's unknowns are eliminated (held at 0 exactly). Assembled and solved in float64 outside
-    autocast (a few 54 x 54 SPD systems, by Cholesky)."""
+    autocast (a few 54 x 54 SPD systems, by Cholesky). frames (model.frame local or fixed): every joint's and beam's
+    axes [..., J, 3, 3] and [..., B, 3, 3] (learn.frames), in which the outputs are read: a beam's stiffness and
+    natural increment, a joint's anchoring and own motion are its own, turned into the global frame by T =
+    diag(R, R) (W -> T W T^T, e -> T e; a joint's anchoring then a full 6 x 6 block), so that a law that depends
+    only on what a block sees in its frame is the same law at every orientation of the block."""
     out_dtype = centres.dtype
     plan = layout(g, fixed) if plan is None else plan
     a, c = plan.ends
@@ -175,19 +183,36 @@ def solve(centres: torch.Tensor, middles: torch.Tensor, joint_raw: torch.Tensor,
         lead, J, G, n = centres.shape[:-2], centres.shape[-2], plan.n_designs, plan.n
         W = spd(beam_raw[..., :21])
         e = wish(beam_raw[..., 21:27]) * scale
+        m = positive(joint_raw[..., :6]) + EPS
+        u = wish(joint_raw[..., 6:12]) * scale
+        if frames is None:  # the outputs are global: the anchorings diagonal
+            anchor_at, anchor, load = plan.diagonal, m.flatten(-2), (m * u).flatten(-2)
+        else:
+            Tj, Tb = (turn(R.double()) for R in frames)
+            W = Tb @ W @ Tb.transpose(-1, -2)
+            e = (Tb @ e[..., None])[..., 0]
+            M = Tj * m[..., None, :] @ Tj.transpose(-1, -2)  # T diag(m) T^T
+            anchor_at, anchor, load = plan.joint_pairs, M.flatten(-3), (Tj * m[..., None, :] @ u[..., None]).flatten(-3)
         D = connection(centres.index_select(-2, a), centres.index_select(-2, c), middles)
         DtW = D.transpose(-1, -2) @ W  # [..., B, 12, 6]
-        m = positive(joint_raw[..., :6]) + EPS
         K = torch.zeros(*lead, G * n * n, dtype=torch.float64).index_add(
-            -1, torch.cat([plan.pairs, plan.diagonal]), torch.cat([(DtW @ D).flatten(-3), m.flatten(-2)], -1))
+            -1, torch.cat([plan.pairs, anchor_at]), torch.cat([(DtW @ D).flatten(-3), anchor], -1))
         f = torch.zeros(*lead, G * n, dtype=torch.float64).index_add(
-            -1, torch.cat([plan.beam_dof, plan.joint_dof]),
-            torch.cat([(DtW @ e[..., None]).flatten(-3), (m * wish(joint_raw[..., 6:12]) * scale).flatten(-2)], -1))
+            -1, torch.cat([plan.beam_dof, plan.joint_dof]), torch.cat([(DtW @ e[..., None]).flatten(-3), load], -1))
         free = plan.free
         K = K.unflatten(-1, (G, n, n)) * (free[..., :, None] * free[..., None, :]) + torch.diag_embed(1.0 - free)
         x = torch.cholesky_solve((f.unflatten(-1, (G, n)) * free)[..., None], torch.linalg.cholesky_ex(K)[0])
         x = x.reshape(*lead, G * n).index_select(-1, plan.joint_dof).unflatten(-1, (J, 6)).to(out_dtype)
         return x[..., :3], x[..., 3:] / ROTATION_ARM
+
+
+def turn(R: torch.Tensor) -> torch.Tensor:
+    """[..., 3, 3] frames -> [..., 6, 6] T = diag(R, R): a block's (motion, r rotation) pair from its frame to the
+    global one."""
+    T = R.new_zeros(*R.shape[:-2], 6, 6)
+    T[..., :3, :3] = R
+    T[..., 3:, 3:] = R
+    return T
 
 
 def rotation(omega: torch.Tensor) -> torch.Tensor:

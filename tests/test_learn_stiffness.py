@@ -1,7 +1,8 @@
 """learn.stiffness: the learned stiffness-method step. The solve is the minimum of the stated energy (checked against
 autograd of that energy, written out here), a lone beam on a fixed joint gets exactly its natural increment, designs
 solved together equal designs solved alone, the fixed joint stays, and a rigid motion of the joints moves every block
-rigidly with them; the simulator with update=stiffness trains, compiles and refuses rotated frames."""
+rigidly with them; the simulator with update=stiffness trains and compiles, and read in each block's own frame
+(model.frame=local) its step turns with the design."""
 from dataclasses import replace
 
 import numpy as np
@@ -149,7 +150,7 @@ def _log(R: np.ndarray) -> np.ndarray:
     return angle * axis
 
 
-def test_a_stiffness_simulator_trains_compiles_and_refuses_rotated_frames(features):
+def test_a_stiffness_simulator_trains_and_compiles(features):
     from learn.evaluate import eager_rollout
     from learn.metrics import multistep_loss
     from learn.rollout import compile_rollout, graph_inputs
@@ -186,8 +187,66 @@ def test_a_stiffness_simulator_trains_compiles_and_refuses_rotated_frames(featur
         for got, w in ((b.joint_states, want.joint_state), (b.beam_states, want.beam_state)):
             assert np.abs(got - w).max() < 1e-5 * np.abs(w).max()
     model.answer_with(1, False, 1)
-    with pytest.raises(ValueError, match="model.update=stiffness needs model.frame=global"):
-        Simulator.fit({**args, "frame": "local"}, data.joint_state, data.beam_state, data.static)
+
+
+def test_read_in_each_blocks_frame_the_solve_turns_with_the_whole_grid(features):
+    """frames given: the same outputs answer a grid turned by any rotation Q (its frames Q R) with the motions turned
+    by Q, exactly; with every frame the identity they answer as the global outputs do."""
+    from scipy.spatial.transform import Rotation
+    f = features[0]
+    g = GraphSet.build([f]).static.index
+    centres = torch.as_tensor(f.joint_state[0][:, JOINT.origin_slice], dtype=torch.float64)
+    middles = torch.as_tensor(f.beam_state[0][:, 9:12], dtype=torch.float64)
+    J, B = f.incidence.n_joints, f.incidence.n_beams
+    joint_raw, beam_raw = random_outputs(J, B, seed=5)
+    fixed = torch.as_tensor(f.joint_bc[:, JOINT.bc.slice("fixed")][:, 0] > 0.5)
+    scale = torch.tensor(1.5)
+    eye = (torch.eye(3, dtype=torch.float64).expand(J, 3, 3), torch.eye(3, dtype=torch.float64).expand(B, 3, 3))
+    plain = stiffness.solve(centres, middles, joint_raw, beam_raw, fixed, g, scale)
+    for got, want in zip(stiffness.solve(centres, middles, joint_raw, beam_raw, fixed, g, scale, frames=eye), plain):
+        torch.testing.assert_close(got, want, atol=1e-9, rtol=1e-9)
+    gen = np.random.default_rng(0)
+    Rj = torch.as_tensor(Rotation.random(J, random_state=1).as_matrix())
+    Rb = torch.as_tensor(Rotation.random(B, random_state=2).as_matrix())
+    Q = torch.as_tensor(Rotation.from_rotvec(gen.normal(size=3)).as_matrix())
+    v, omega = stiffness.solve(centres, middles, joint_raw, beam_raw, fixed, g, scale, frames=(Rj, Rb))
+    vq, omegaq = stiffness.solve(centres @ Q.T, middles @ Q.T, joint_raw, beam_raw, fixed, g, scale,
+                                 frames=(Q @ Rj, Q @ Rb))
+    assert v.abs().max() > 0.1
+    torch.testing.assert_close(vq, v @ Q.T, atol=1e-9, rtol=1e-9)
+    torch.testing.assert_close(omegaq, omega @ Q.T, atol=1e-9, rtol=1e-9)
+    v2, _ = stiffness.solve(centres, middles, joint_raw, beam_raw, fixed, g, scale, frames=(Rj, Q @ Rb))
+    assert (v2 - v).abs().max() > 1e-3  # the frames are read
+
+
+def test_a_stiffness_simulator_in_local_frames_trains_and_its_step_turns_with_the_design(features):
+    """model.frame=local with update=stiffness: inputs, stiffnesses and wishes in each block's own frame; one step of
+    a design turned about z is the step of the design, turned (gravity is along z), without any averaging."""
+    from learn.metrics import multistep_loss
+    data = GraphSet.build(features)
+    args = {"core": "double_gn", "latent": 8, "widths": [16, 8], "update": "stiffness", "pin_fixed_joint": True,
+            "global_latent": 4, "frame": "local"}
+    model = Simulator.fit(args, data.joint_state, data.beam_state, data.static)
+    loss = multistep_loss(model, data, 3)
+    loss.backward()
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in model.parameters())
+    model.eval()
+    R = rotation_z(0.7)
+    one, turned = GraphSet.build([features[0]]), GraphSet.build([features[0].rotated(R)])
+    with torch.no_grad():
+        for p in model.core.parameters():  # outputs far from 0, so the solve moves the joints
+            p.add_(0.05 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel())))
+        j, b = model.step(one.joint_state[:1], one.beam_state[:1], one.static, one.t[:1])
+        jt, bt = model.step(turned.joint_state[:1], turned.beam_state[:1], turned.static, turned.t[:1])
+    moved = replace(features[0], joint_state=j.numpy(), beam_state=b.numpy()).rotated(R)
+    assert np.abs(j.numpy() - one.joint_state[:1].numpy()).max() > 1e-2  # it moved
+    np.testing.assert_allclose(jt.numpy(), moved.joint_state, atol=2e-4 * np.abs(moved.joint_state).max())
+    np.testing.assert_allclose(bt.numpy(), moved.beam_state, atol=2e-4 * np.abs(moved.beam_state).max())
+    from learn.evaluate import eager_rollout
+    from learn.rollout import compile_rollout, graph_inputs
+    with torch.no_grad():
+        torch.testing.assert_close(compile_rollout(model, features[0])(*graph_inputs(features[1]))[2],
+                                   eager_rollout(model, features[1])(), atol=1e-3, rtol=1e-4)
 
 
 def test_rodrigues_rotation_is_the_matrix_exponential_at_every_angle():
