@@ -88,7 +88,11 @@ def split_of(source: str | Path) -> dict[str, list[str]]:
 
 def model_from(ckpt: dict) -> Simulator:
     model = Simulator(ckpt["model_args"])
-    model.load_state_dict(ckpt["state_dict"])
+    state = dict(ckpt["state_dict"])
+    for step, delta in (("joint_step", "joint_delta"), ("beam_step", "beam_delta")):
+        if model.rotated and f"{step}.std" not in state:  # a rotated model saved before session 31: its loss read the
+            state.update({f"{step}.{k}": state[f"{delta}.{k}"] for k in ("mean", "std")})  # deltas' stds
+    model.load_state_dict(state)
     return model.eval()
 
 

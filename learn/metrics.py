@@ -54,14 +54,15 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
     if model.direct:  # every frame from frame 0 in one pass: no horizon, nothing carried between steps
         h, S = 1, 1
     j, b = batch.joint_state[:S], batch.beam_state[:S]
+    joint_std, beam_std = model.step_std()  # global columns in global step stds, whatever frame the network reads
     if noise_std > 0:
-        j = j + noise_std * model.joint_delta.std * torch.randn(j.shape, generator=generator)
-        b = b + noise_std * model.beam_delta.std * torch.randn(b.shape, generator=generator)
+        j = j + noise_std * joint_std * torch.randn(j.shape, generator=generator)
+        b = b + noise_std * beam_std * torch.randn(b.shape, generator=generator)
     points = geometry == "points"
     wj, wb = column_weights(JOINT, stress_weight), column_weights(BEAM, stress_weight)
     if points:
         wj[JOINT.geometry_slice], wb[BEAM.geometry_slice] = 0.0, 0.0
-        scale = torch.cat([model.joint_delta.std[JOINT.geometry_slice], model.beam_delta.std[BEAM.geometry_slice]])
+        scale = torch.cat([joint_std[JOINT.geometry_slice], beam_std[BEAM.geometry_slice]])
         scale = scale.mean()
     if chord_weight > 0:
         chord_std = beam_chords(batch.beam_state).diff(dim=0).flatten(0, -2).std(0).clamp_min(1e-3)
@@ -69,8 +70,7 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
     every = noise_every_step and noise_std > 0 and not model.direct
     if every:  # in raw units: the step std of each column the network reads, 0 on the others
         read = float(model.args.get("stress_input", True))  # the stress columns' weight: 1 where they are read
-        nj, nb = (noise_std * delta.std * column_weights(spec, read)
-                  for delta, spec in ((model.joint_delta, JOINT), (model.beam_delta, BEAM)))
+        nj, nb = (noise_std * std * column_weights(spec, read) for std, spec in ((joint_std, JOINT), (beam_std, BEAM)))
     loss = torch.zeros(())
     for k in range(h):
         if every and k > 0:  # the state the model reached, displaced
@@ -87,7 +87,7 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
         else:
             j, b = model.step(j, b, batch.static, batch.t[k:S + k])
             tj, tb = batch.joint_state[k + 1:S + k + 1], batch.beam_state[k + 1:S + k + 1]
-        ej, eb = (j - tj) / model.joint_delta.std, (b - tb) / model.beam_delta.std
+        ej, eb = (j - tj) / joint_std, (b - tb) / beam_std
         loss = loss + columns(ej, eb)
         if chord_weight > 0:
             loss = loss + chord_weight * ((beam_chords(b) - beam_chords(tb)) / chord_std).square().mean()

@@ -286,6 +286,9 @@ class Simulator(nn.Module):
         self.edge_norm = Normalizer(EDGE_FEATURES_LOCAL if self.local else EDGE_FEATURES)
         self.joint_delta = Normalizer(JOINT.state_size)
         self.beam_delta = Normalizer(BEAM.state_size)
+        if self.rotated:  # the deltas above are in the blocks' frames; the loss and noise read the global columns
+            self.joint_step = Normalizer(JOINT.state_size)
+            self.beam_step = Normalizer(BEAM.state_size)
         if self.kinematic:  # geometry updates in the parent's frame (learn/kinematics.py)
             self.joint_rel_delta = Normalizer(JOINT.geometry.size)
             self.beam_rel_delta = Normalizer(BEAM.geometry.size)
@@ -419,6 +422,15 @@ class Simulator(nn.Module):
         edges = self.edge_norm(self.edge_features(joint_state, beam_state, static, R))
         return torch.cat(parts_j, -1), torch.cat(parts_b, -1), edges
 
+    def step_std(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Every state column's step std in the global frame, joints' and beams': the units of the training loss and
+        of its noise. With frame local or fixed the deltas' normalisers hold the stds in the blocks' frames, which
+        weigh a global column by a local one's spread (an extrusion's step across itself is ~0 in its joint's frame),
+        so those models keep the global ones apart (before session 31 their loss used the local ones)."""
+        if self.rotated:
+            return self.joint_step.std, self.beam_step.std
+        return self.joint_delta.std, self.beam_delta.std
+
     # ------------------------------------------------------------------------------------------- dynamics
     def forward(self, joint_state, beam_state, static: Static, t, R=(None, None), core: nn.Module | None = None):
         """Normalised updates dG: [..., J, JOINT.state_size], [..., B, BEAM.state_size] (frame local or fixed: in
@@ -448,7 +460,7 @@ class Simulator(nn.Module):
         if self.stiffness:  # the grid's rigid compromise first (learn/stiffness.py), then the additive update on it
             dj, joint_raw = dj.split([JOINT.state_size, stiffness.JOINT_OUT], -1)
             db, beam_raw = db.split([BEAM.state_size, stiffness.BEAM_OUT], -1)
-            scale = self.joint_delta.std[JOINT.origin_slice].mean()  # mm: a joint centre's step
+            scale = self.step_std()[0][JOINT.origin_slice].mean()  # mm: a joint centre's step
             plan = static.stiffness_layout()  # built at the first step, kept for the rest
             v, omega = stiffness.solve(joint_state[..., JOINT.origin_slice], beam_state[..., BEAM.origin_slice],
                                        joint_raw, beam_raw, None, static.index, scale, plan,
@@ -524,6 +536,8 @@ class Simulator(nn.Module):
                 add("edge_norm", probe.edge_features(joint_state, beam_state, static, R))
                 dj, db, start = probe.updates(joint_state, beam_state)
                 if probe.rotated:  # updates as the network predicts them: in the frame of the step's start state
+                    add("joint_step", dj)
+                    add("beam_step", db)
                     dj = frames.rotate_state(dj, JOINT, R[0][start], to_local=True)
                     db = frames.rotate_state(db, BEAM, R[1][start], to_local=True)
                 add("joint_delta", dj)
@@ -541,7 +555,8 @@ class Simulator(nn.Module):
                     pcas[t].widen_range(x.reshape(-1, x.shape[-1]).numpy())
         for t, p in pcas.items():
             model.pca[t].load_state_dict(p.state_dict())
-        for name, block in (("edge_norm", None), ("joint_delta", JOINT), ("beam_delta", BEAM)):
+        steps = (("joint_step", JOINT), ("beam_step", BEAM)) if model.rotated else ()
+        for name, block in (("edge_norm", None), ("joint_delta", JOINT), ("beam_delta", BEAM), *steps):
             groups = None if block is None else [block.geometry_slice, block.stress_slice]
             getattr(model, name).load_state_dict(
                 Normalizer.from_moments(moments[name], delta_floor if block else 0.0, groups).state_dict())

@@ -202,6 +202,26 @@ def test_rotated_frame_simulator_is_equivariant_to_rotations_about_z(features, f
     assert np.abs(bb[:, B:].numpy() - want.beam_state).max() < 1e-5 * scale
 
 
+@pytest.mark.parametrize("frame", ["local", "fixed"])
+def test_a_rotated_frame_model_weighs_its_loss_by_the_global_columns_step_stds(features, frame, tmp_path):
+    """The deltas' normalisers of a frame local / fixed model hold each column's step std in the blocks' frames;
+    the loss and its noise read global columns, so they take the global step stds (Simulator.step_std), which a
+    global model's deltas hold. A checkpoint saved before they existed loads with the deltas' (what it trained on)."""
+    from learn import checkpoint
+    data = GraphSet.build(features[:3])
+    args = {"core": "double_gn", "latent": 8, "widths": [16, 8], "pin_fixed_joint": True}
+    plain = Simulator.fit(args, data.joint_state, data.beam_state, data.static)
+    turned = Simulator.fit({**args, "frame": frame}, data.joint_state, data.beam_state, data.static)
+    for got, want in zip(turned.step_std(), (plain.joint_delta.std, plain.beam_delta.std)):
+        torch.testing.assert_close(got, want)
+    if frame == "local":  # in the blocks' own frames the columns' spreads are others (by a factor 4 and more here)
+        ratio = turned.joint_delta.std / turned.step_std()[0]
+        assert ratio.max() / ratio.min() > 4
+    old = {k: v for k, v in turned.state_dict().items() if "_step." not in k}
+    loaded = checkpoint.model_from({"model_args": turned.args, "state_dict": old})
+    torch.testing.assert_close(loaded.step_std()[0], turned.joint_delta.std)
+
+
 def test_design_frame_turns_with_the_fixed_joint_about_z_only(features):
     """frames.design_frame: one rotation about z per design, the same for all its blocks, turned by R when the
     design is turned by R."""
