@@ -231,6 +231,14 @@ def test_a_stiffness_simulator_in_local_frames_trains_and_its_step_turns_with_th
     loss.backward()
     assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in model.parameters())
     model.eval()
+    from learn.evaluate import eager_rollout
+    from learn.rollout import compile_rollout, graph_inputs
+    # the fitted network: perturbed far from its fit (below) the float32 rounding of the frames grows chaotically
+    # (CI saw 3.6e-3 mm); on the fitted one, 1.6e-4 mm here, i.e. 2e-6 of the design size. 1e-4 of the design size
+    # is 100x below any error the project reports and far below what a frame read wrongly in one path would give.
+    with torch.no_grad():
+        torch.testing.assert_close(compile_rollout(model, features[0])(*graph_inputs(features[1]))[2],
+                                   eager_rollout(model, features[1])(), atol=1e-4 * features[1].design_size, rtol=0)
     R = rotation_z(0.7)
     one, turned = GraphSet.build([features[0]]), GraphSet.build([features[0].rotated(R)])
     with torch.no_grad():
@@ -242,11 +250,6 @@ def test_a_stiffness_simulator_in_local_frames_trains_and_its_step_turns_with_th
     assert np.abs(j.numpy() - one.joint_state[:1].numpy()).max() > 1e-2  # it moved
     np.testing.assert_allclose(jt.numpy(), moved.joint_state, atol=2e-4 * np.abs(moved.joint_state).max())
     np.testing.assert_allclose(bt.numpy(), moved.beam_state, atol=2e-4 * np.abs(moved.beam_state).max())
-    from learn.evaluate import eager_rollout
-    from learn.rollout import compile_rollout, graph_inputs
-    with torch.no_grad():
-        torch.testing.assert_close(compile_rollout(model, features[0])(*graph_inputs(features[1]))[2],
-                                   eager_rollout(model, features[1])(), atol=1e-3, rtol=1e-4)
 
 
 def test_rodrigues_rotation_is_the_matrix_exponential_at_every_angle():
