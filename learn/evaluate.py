@@ -22,7 +22,7 @@ from learn.features import EpisodeFeatures, rebuild_all_points
 from learn.model import Simulator, static_from
 from learn.roll import ONE_KIND, ROLLED, roll
 from learn.rollout import answer_unroll, compile_rollout, graph_inputs, input_floor, reference, rollout
-from learn.validity import check
+from learn.validity import check, thresholds
 
 log = logging.getLogger(__name__)
 
@@ -238,6 +238,7 @@ def evaluate(cfg: DictConfig) -> dict:
     sources = ensemble.checkpoint_paths(cfg.checkpoint)
     model, ckpt = ensemble.load(sources)
     model.answer_with(cfg.rollout_rotations, cfg.rollout_mirror, cfg.rollout_lattice_turns)
+    limits = thresholds(OmegaConf.to_container(cfg.validity), model)  # those of the model's frame
     data_dir = Path(cfg.data_dir or ckpt["config"]["data_dir"])
     paths = split_paths(cfg.split, ckpt["split"], data_dir, sources[0])
     if not paths:
@@ -250,7 +251,7 @@ def evaluate(cfg: DictConfig) -> dict:
     designs, rollouts = [], []
     for f in features:
         raw = rollout(model, f, steps=f.n_frames - 1, t=f.t)
-        verdict = check(model, raw, **OmegaConf.to_container(cfg.validity), envelope=ckpt.get("envelope"))
+        verdict = check(model, raw, **limits, envelope=ckpt.get("envelope"))
         r = raw.welded() if weld else raw  # the answer measured; the check reads the blocks as predicted
         err = np.linalg.norm(r.local_points - f.fea_points, axis=-1)  # [F, P]
         floor = np.linalg.norm(reference(f).local_points - f.fea_points, axis=-1)
@@ -295,7 +296,7 @@ def evaluate(cfg: DictConfig) -> dict:
                   "(initial graph -> rebuilt points of every frame), TorchScript-compiled once per model (compile_s), "
                   "on `threads` CPU threads; _eager: plain PyTorch; _batched: all designs as one graph. "
                   "FEA: mean of the episodes' provenance wall_s.total",
-        "validity_thresholds": OmegaConf.to_container(cfg.validity),
+        "validity_thresholds": limits,
         "designs": designs,
     }
     atomic.write_text(out_dir / "report.json", json.dumps(finite_or_null(report), indent=1, allow_nan=False))

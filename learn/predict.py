@@ -32,7 +32,7 @@ from learn.features import extract
 from learn.plots import equal_axes
 from learn.rollout import Rollout, rollout
 from learn.shapes import block_hexahedra
-from learn.validity import check
+from learn.validity import check, thresholds
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -94,7 +94,8 @@ def predict(cfg: DictConfig) -> dict:
     start = time.perf_counter()
     raw = rollout(model, f, steps=steps)
     rollout_ms = 1e3 * (time.perf_counter() - start)
-    verdict = check(model, raw, **OmegaConf.to_container(cfg.validity), envelope=ckpt.get("envelope"))
+    limits = thresholds(OmegaConf.to_container(cfg.validity), model)  # those of the model's frame
+    verdict = check(model, raw, **limits, envelope=ckpt.get("envelope"))
     weld = bool(cfg.get("weld", True))
     r = raw.welded() if weld else raw  # the answer written and measured; the check read the blocks as predicted
     out_dir = Path(cfg.out_dir)

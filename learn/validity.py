@@ -95,6 +95,22 @@ def out_of_range(model: Simulator | Ensemble, r: Rollout, margin: float) -> np.n
     return torch.cat([joint_bad, beam_bad], 1).float().mean(1).numpy()
 
 
+def thresholds(validity: dict, model: Simulator | Ensemble) -> dict:
+    """The keyword arguments of `check` for `model` from conf/validity: its top-level thresholds, overridden by those
+    under the model's frame (`local:`; an ensemble with any member in that frame takes them, as its out-of-range
+    share counts a block outside any member's range). The out-of-range share is read against the model's own
+    training ranges, which a model reading each block in its own frame has narrower, so its calibration differs."""
+    base = {k: v for k, v in validity.items() if not isinstance(v, dict)}
+    frames = {m.args.get("frame", "global") for m in members_of(model)}
+    for frame, overrides in validity.items():
+        if isinstance(overrides, dict) and frame in frames:
+            unknown = set(overrides) - set(base)
+            if unknown:
+                raise ValueError(f"validity.{frame}: unknown thresholds {sorted(unknown)}; allowed: {sorted(base)}")
+            base.update(overrides)
+    return base
+
+
 def check(model: Simulator | Ensemble, r: Rollout, max_dislocation_rel: float = 0.04, range_margin: float = 0.0,
           max_out_of_range: float = 0.3, max_unrolled_one_kind: float = 0.85, envelope: dict | None = None,
           condition_tolerance: float = REL_TOL, max_spread_rel: float | None = None) -> Verdict:

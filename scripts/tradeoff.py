@@ -158,7 +158,7 @@ def learned_row(model, ref_ep, name: str, pd_name: str, size: float, repeats: in
     from learn.evaluate import median_seconds
     from learn.features import extract
     from learn.rollout import compile_rollout, graph_inputs, rollout
-    from learn.validity import check
+    from learn.validity import check, thresholds
 
     torch.set_num_threads(1)
     f = extract(ref_ep, name=pd_name)
@@ -176,8 +176,8 @@ def learned_row(model, ref_ep, name: str, pd_name: str, size: float, repeats: in
     ref = corner_positions(ref_ep, slice(1, None))
     d = np.linalg.norm(r.points[1:, idx] - ref, axis=-1)
     mx, mean = float(d.max() / size), float(d.mean() / size)
-    thresholds = OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / "validity" / "default.yaml"))
-    verdict = check(model, r, **thresholds)
+    limits = OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / "validity" / "default.yaml"))
+    verdict = check(model, r, **thresholds(limits, model))
     row.update(max_rel_error=mx, mean_rel_error=mean, max_error_mm=float(d.max()))
     row["valid"] = bool(verdict.valid)
     if not verdict.valid:

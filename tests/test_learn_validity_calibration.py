@@ -82,8 +82,37 @@ def test_the_check_defaults_are_the_calibrated_thresholds_of_conf():
 
     from learn.validity import check
     conf = OmegaConf.to_container(OmegaConf.load(REPO / "conf" / "validity" / "default.yaml"))
+    conf = {k: v for k, v in conf.items() if not isinstance(v, dict)}  # the per-frame overrides aside
     defaults = {k: p.default for k, p in inspect.signature(check).parameters.items() if k in conf}
     assert defaults == conf
+
+
+def test_a_model_in_local_frames_is_judged_by_the_thresholds_calibrated_for_that_frame():
+    """learn.validity.thresholds: a global model gets conf/validity's top-level thresholds, a model.frame=local one (or
+    an ensemble with such a member) those under `local:`; an override that names no threshold is refused."""
+    import inspect
+
+    from omegaconf import OmegaConf
+
+    from data_schema.testing import synthetic_episode
+    from learn.dataset import GraphSet
+    from learn.ensemble import Ensemble
+    from learn.features import extract
+    from learn.model import Simulator
+    from learn.validity import check, thresholds
+    conf = OmegaConf.to_container(OmegaConf.load(REPO / "conf" / "validity" / "default.yaml"))
+    data = GraphSet.build([extract(synthetic_episode(3, 3, 5, 3, 3, frames=3, seed=0), name="ep0.h5")])
+    models = {frame: Simulator.fit({"core": "double_gn", "latent": 4, "widths": [8], "frame": frame},
+                                   data.joint_state, data.beam_state, data.static) for frame in ("global", "local")}
+    plain, local = thresholds(conf, models["global"]), thresholds(conf, models["local"])
+    assert plain["max_out_of_range"] == conf["max_out_of_range"] and "local" not in plain
+    assert local["max_out_of_range"] == conf["local"]["max_out_of_range"] != conf["max_out_of_range"]
+    assert {k: v for k, v in local.items() if k not in conf["local"]} == {
+        k: v for k, v in plain.items() if k not in conf["local"]}
+    assert thresholds(conf, Ensemble([models["global"], models["local"]])) == local
+    assert set(local) <= set(inspect.signature(check).parameters)
+    with pytest.raises(ValueError, match="validity.local: unknown thresholds.*max_out_of_rang"):
+        thresholds({**conf, "local": {"max_out_of_rang": 0.5}}, models["local"])
 
 
 def test_an_answer_of_a_one_kind_design_that_has_not_rolled_is_the_unrolled_indicator():
