@@ -150,26 +150,36 @@ def _log(R: np.ndarray) -> np.ndarray:
     return angle * axis
 
 
-def test_a_stiffness_simulator_trains_and_compiles(features):
-    from learn.evaluate import eager_rollout
+def stiffness_model_with_gradients(features, horizon: int, **args) -> tuple[Simulator, GraphSet]:
+    """A small stiffness simulator fitted to `features` whose `horizon`-step loss gives every parameter a finite
+    gradient; returned in eval mode with its data."""
     from learn.metrics import multistep_loss
-    from learn.rollout import compile_rollout, graph_inputs
     data = GraphSet.build(features)
     args = {"core": "double_gn", "latent": 8, "widths": [16, 8], "update": "stiffness", "pin_fixed_joint": True,
-            "global_latent": 4}
+            "global_latent": 4, **args}
     model = Simulator.fit(args, data.joint_state, data.beam_state, data.static)
-    loss = multistep_loss(model, data, 4)
-    loss.backward()
+    multistep_loss(model, data, horizon).backward()
     assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in model.parameters())
-    model.eval()
+    return model.eval(), data
+
+
+def assert_compiled_is_eager(model: Simulator, features, atol: float, rtol: float = 0.0):
+    """The rollout compiled on one episode answers another as the eager step does."""
+    from learn.evaluate import eager_rollout
+    from learn.rollout import compile_rollout, graph_inputs
+    with torch.no_grad():
+        torch.testing.assert_close(compile_rollout(model, features[0])(*graph_inputs(features[1]))[2],
+                                   eager_rollout(model, features[1])(), atol=atol, rtol=rtol)
+
+
+def test_a_stiffness_simulator_trains_and_compiles(features):
+    model, data = stiffness_model_with_gradients(features, 4)
     with torch.no_grad():
         j, b = model.step(data.joint_state[:1], data.beam_state[:1], data.static, data.t[:1])
         fixed = data.static.joint_bc[:, JOINT.bc.slice("fixed")][:, 0] > 0.5
         G = JOINT.geometry_slice
         torch.testing.assert_close(j[0, fixed, G], data.joint_state[0, fixed, G], atol=1e-3, rtol=0)
-        compiled = compile_rollout(model, features[0])
-        torch.testing.assert_close(compiled(*graph_inputs(features[1]))[2], eager_rollout(model, features[1])(),
-                                   atol=1e-3, rtol=1e-4)
+    assert_compiled_is_eager(model, features, atol=1e-3, rtol=1e-4)
     # averaged over 4 turns the answer is equivariant (a network perturbed far from its fit, as in test_learn_model's
     # version of this check, drives the solve's states chaotic, so the fitted network is used here)
     from learn.rollout import rollout
@@ -222,23 +232,11 @@ def test_read_in_each_blocks_frame_the_solve_turns_with_the_whole_grid(features)
 def test_a_stiffness_simulator_in_local_frames_trains_and_its_step_turns_with_the_design(features):
     """model.frame=local with update=stiffness: inputs, stiffnesses and wishes in each block's own frame; one step of
     a design turned about z is the step of the design, turned (gravity is along z), without any averaging."""
-    from learn.metrics import multistep_loss
-    data = GraphSet.build(features)
-    args = {"core": "double_gn", "latent": 8, "widths": [16, 8], "update": "stiffness", "pin_fixed_joint": True,
-            "global_latent": 4, "frame": "local"}
-    model = Simulator.fit(args, data.joint_state, data.beam_state, data.static)
-    loss = multistep_loss(model, data, 3)
-    loss.backward()
-    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in model.parameters())
-    model.eval()
-    from learn.evaluate import eager_rollout
-    from learn.rollout import compile_rollout, graph_inputs
+    model, _ = stiffness_model_with_gradients(features, 3, frame="local")
     # the fitted network: perturbed far from its fit (below) the float32 rounding of the frames grows chaotically
     # (CI saw 3.6e-3 mm); on the fitted one, 1.6e-4 mm here, i.e. 2e-6 of the design size. 1e-4 of the design size
     # is 100x below any error the project reports and far below what a frame read wrongly in one path would give.
-    with torch.no_grad():
-        torch.testing.assert_close(compile_rollout(model, features[0])(*graph_inputs(features[1]))[2],
-                                   eager_rollout(model, features[1])(), atol=1e-4 * features[1].design_size, rtol=0)
+    assert_compiled_is_eager(model, features, atol=1e-4 * features[1].design_size)
     R = rotation_z(0.7)
     one, turned = GraphSet.build([features[0]]), GraphSet.build([features[0].rotated(R)])
     with torch.no_grad():
