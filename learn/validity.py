@@ -35,7 +35,7 @@ import torch
 from learn.conditions import REL_TOL, outside
 from learn.ensemble import Ensemble, member_spread, members_of
 from learn.features import shared_point_pairs
-from learn.model import Simulator, static_from
+from learn.model import FRAMES, Simulator, static_from
 from learn.roll import ONE_KIND, roll
 from learn.rollout import Rollout
 
@@ -103,6 +103,8 @@ def thresholds(validity: dict, model: Simulator | Ensemble) -> dict:
     base = {k: v for k, v in validity.items() if not isinstance(v, dict)}
     frames = {m.args.get("frame", "global") for m in members_of(model)}
     for frame, overrides in validity.items():
+        if isinstance(overrides, dict) and frame not in FRAMES:
+            raise ValueError(f"validity.{frame}: not a model frame; allowed: {list(FRAMES)}")
         if isinstance(overrides, dict) and frame in frames:
             unknown = set(overrides) - set(base)
             if unknown:

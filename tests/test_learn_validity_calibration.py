@@ -113,6 +113,8 @@ def test_a_model_in_local_frames_is_judged_by_the_thresholds_calibrated_for_that
     assert set(local) <= set(inspect.signature(check).parameters)
     with pytest.raises(ValueError, match="validity.local: unknown thresholds.*max_out_of_rang"):
         thresholds({**conf, "local": {"max_out_of_rang": 0.5}}, models["local"])
+    with pytest.raises(ValueError, match="validity.locl: not a model frame"):
+        thresholds({**conf, "locl": {"max_out_of_range": 0.5}}, models["global"])
 
 
 def test_an_answer_of_a_one_kind_design_that_has_not_rolled_is_the_unrolled_indicator():
