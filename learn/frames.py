@@ -13,6 +13,21 @@ from learn.graph import BEAM, JOINT, Block, GraphIndex
 _TENSOR_ROWS, _TENSOR_COLS = torch.tensor([0, 1, 2, 0, 0, 1]), torch.tensor([0, 1, 2, 1, 2, 2])  # Voigt xx yy zz xy xz yz
 
 
+def _voigt_pairs() -> torch.Tensor:
+    """[81, 36]: (R_ac R_bd over a, b, c, d) @ it = stress_rotation(R) flattened; row (a, b) of Q picks R_ac R_bd,
+    plus R_ad R_bc where c != d (one matrix product instead of a dozen gathers per call)."""
+    P = torch.zeros(3, 3, 3, 3, 6, 6)
+    for i, (a, b) in enumerate(zip(_TENSOR_ROWS.tolist(), _TENSOR_COLS.tolist())):
+        for j, (c, d) in enumerate(zip(_TENSOR_ROWS.tolist(), _TENSOR_COLS.tolist())):
+            P[a, b, c, d, i, j] += 1.0
+            if c != d:
+                P[a, b, d, c, i, j] += 1.0
+    return P.reshape(81, 36)
+
+
+_VOIGT_PAIRS = _voigt_pairs()
+
+
 def orthonormal(along: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
     """[..., 3] x 2 -> [..., 3, 3]: e1 = along, e3 = up made orthogonal to e1, e2 = e3 x e1."""
     e1 = along / along.norm(dim=-1, keepdim=True).clamp_min(1e-9)
@@ -61,18 +76,15 @@ def design_frame(joint_state: torch.Tensor, fixed: torch.Tensor,
 
 def rotate_vectors(x: torch.Tensor, R: torch.Tensor, to_local: bool) -> torch.Tensor:
     """[..., n, 3k] stacked 3-vectors, R [..., n, 3, 3] -> R^T v (to_local) or R v."""
-    v = x.unflatten(-1, (-1, 3))  # [..., n, k, 3]
-    eq = "...ji,...kj->...ki" if to_local else "...ij,...kj->...ki"
-    return torch.einsum(eq, R, v).flatten(-2)
+    v = x.unflatten(-1, (-1, 3))  # [..., n, k, 3]: rows, so R^T v is v @ R and R v is v @ R^T
+    return (v @ (R if to_local else R.transpose(-1, -2))).flatten(-2)
 
 
 def stress_rotation(R: torch.Tensor) -> torch.Tensor:
     """[..., 3, 3] rotations -> [..., 6, 6] Q with Voigt(R s R^T) = Q Voigt(s): row (a, b), column (c, d) holds
     R_ac R_bd + R_ad R_bc (the second term only for c != d, whose entry stands for both s_cd and s_dc)."""
-    rows, cols = _TENSOR_ROWS, _TENSOR_COLS
-    Rr, Rc = R[..., rows, :], R[..., cols, :]  # [..., 6, 3]: R_a. and R_b. of every row (a, b)
-    off = (rows != cols).to(R.dtype)
-    return Rr[..., rows] * Rc[..., cols] + off * Rr[..., cols] * Rc[..., rows]
+    pairs = (R.unsqueeze(-1).unsqueeze(-3) * R.unsqueeze(-2).unsqueeze(-4)).flatten(-4)  # [..., 81]: R_ac R_bd
+    return (pairs @ _VOIGT_PAIRS.to(R.dtype)).unflatten(-1, (6, 6))
 
 
 def rotate_stresses(x: torch.Tensor, R: torch.Tensor, to_local: bool) -> torch.Tensor:

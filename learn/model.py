@@ -328,8 +328,11 @@ class Simulator(nn.Module):
     def input_terms(self, block: Block) -> tuple[str, ...]:
         """The terms of a block the network sees: geometry, stress and bc, or without stress_input no stress (the
         stress stays in the state and in the loss, predicted but not read back)."""
-        kinds = ("geometry", "stress", "bc") if self.args.get("stress_input", True) else ("geometry", "bc")
-        return tuple(f"{block.name}_{kind}" for kind in kinds)
+        return tuple(f"{block.name}_{kind}" for kind in self.input_kinds)
+
+    @property
+    def input_kinds(self) -> tuple[str, ...]:
+        return TERM_KINDS if self.args.get("stress_input", True) else ("geometry", "bc")
 
     def frames(self, joint_state, beam_state, static: Static):
         """Block frames [..., J, 3, 3], [..., B, 3, 3] (frame local: each block's own; fixed: its design's) or
@@ -340,28 +343,33 @@ class Simulator(nn.Module):
             return frames.design_frame(joint_state, static.joint_bc[..., JOINT.bc.slice("fixed")], static.index)
         return frames.frame(joint_state, JOINT), frames.frame(beam_state, BEAM)
 
-    def _block_terms(self, state, bc, block: Block, R) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        geometry = local_geometry(state[..., block.geometry_slice], block)
-        stress = state[..., block.stress_slice]
-        if self.local or self.args.get("bc_position", "reference") == "current":
-            bc = with_current_position(bc, state, block)
-        if R is not None:
-            geometry = frames.rotate_vectors(geometry, R, to_local=True)
-            stress = frames.rotate_stresses(stress, R, to_local=True)
-            pos = block.bc.slice("position")
-            bc = bc.expand(*R.shape[:-2], bc.shape[-1])  # a reference bc [n, D] turns with each state's frames
-            bc = torch.cat([bc[..., :pos.start], frames.rotate_vectors(bc[..., pos], R, to_local=True),
-                            bc[..., pos.stop:]], -1)
-        return geometry, stress, bc
+    def _block_terms(self, state, bc, block: Block, R, kinds=TERM_KINDS) -> dict[str, torch.Tensor]:
+        terms = {}
+        if "geometry" in kinds:
+            geometry = local_geometry(state[..., block.geometry_slice], block)
+            terms["geometry"] = geometry if R is None else frames.rotate_vectors(geometry, R, to_local=True)
+        if "stress" in kinds:
+            stress = state[..., block.stress_slice]
+            terms["stress"] = stress if R is None else frames.rotate_stresses(stress, R, to_local=True)
+        if "bc" in kinds:
+            if self.local or self.args.get("bc_position", "reference") == "current":
+                bc = with_current_position(bc, state, block)
+            if R is not None:
+                pos = block.bc.slice("position")
+                bc = bc.expand(*R.shape[:-2], bc.shape[-1])  # a reference bc [n, D] turns with each state's frames
+                bc = torch.cat([bc[..., :pos.start], frames.rotate_vectors(bc[..., pos], R, to_local=True),
+                                bc[..., pos.stop:]], -1)
+            terms["bc"] = bc
+        return {f"{block.name}_{kind}": x for kind, x in terms.items()}
 
-    def raw_terms(self, joint_state, beam_state, static: Static, R=(None, None)) -> dict[str, torch.Tensor]:
-        """Every term as the PCA sees it (geometry translated to each block's own origin, with frame local or fixed
-        also rotated into the block's frame); R: frames from self.frames, computed here when not given."""
+    def raw_terms(self, joint_state, beam_state, static: Static, R=(None, None),
+                  kinds: tuple[str, ...] = TERM_KINDS) -> dict[str, torch.Tensor]:
+        """The terms of `kinds` (every term by default) as the PCA sees them (geometry translated to each block's
+        own origin, with frame local or fixed also rotated into the block's frame); R: frames from self.frames,
+        computed here when not given."""
         Rj, Rb = R if R[0] is not None or not self.rotated else self.frames(joint_state, beam_state, static)
-        jg, js, jbc = self._block_terms(joint_state, static.joint_bc, JOINT, Rj)
-        bg, bs, bbc = self._block_terms(beam_state, static.beam_bc, BEAM, Rb)
-        return {"joint_geometry": jg, "joint_stress": js, "joint_bc": jbc,
-                "beam_geometry": bg, "beam_stress": bs, "beam_bc": bbc}
+        return {**self._block_terms(joint_state, static.joint_bc, JOINT, Rj, kinds),
+                **self._block_terms(beam_state, static.beam_bc, BEAM, Rb, kinds)}
 
     def input_geometry(self, joint_state, beam_state, static: Static) -> tuple[torch.Tensor, torch.Tensor]:
         """The states with every block's geometry replaced by what the network sees of it: its local geometry
@@ -397,14 +405,15 @@ class Simulator(nn.Module):
                           frames.relative_rotation(Re, Rj.index_select(-3, g.senders)),
                           frames.relative_rotation(Re, Rj.index_select(-3, g.receivers))], -1)
 
-    def coefficients(self, joint_state, beam_state, static: Static, R=(None, None)) -> dict[str, torch.Tensor]:
-        return {t: self.pca[t](x) for t, x in self.raw_terms(joint_state, beam_state, static, R).items()}
+    def coefficients(self, joint_state, beam_state, static: Static, R=(None, None),
+                     kinds: tuple[str, ...] = TERM_KINDS) -> dict[str, torch.Tensor]:
+        return {t: self.pca[t](x) for t, x in self.raw_terms(joint_state, beam_state, static, R, kinds).items()}
 
     def encode(self, joint_state, beam_state, static: Static, t, R=(None, None)):
         """-> network inputs joints [..., J, Dj], beams [..., B, Db], edges [..., E, De]."""
         if self.rotated and R[0] is None:
             R = self.frames(joint_state, beam_state, static)
-        z = self.coefficients(joint_state, beam_state, static, R)
+        z = self.coefficients(joint_state, beam_state, static, R, self.input_kinds)  # only what the network reads
         lead = joint_state.shape[:-2]
         parts_j = [z[k].expand(*lead, *z[k].shape[-2:]) for k in self.input_terms(JOINT)]
         parts_b = [z[k].expand(*lead, *z[k].shape[-2:]) for k in self.input_terms(BEAM)]

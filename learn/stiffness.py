@@ -136,10 +136,15 @@ class Layout:
     beam_dof: torch.Tensor  # [B * 12] each beam's two joints' unknowns
     pairs: torch.Tensor  # [B * 144] each beam's 12 x 12 block in the stacked G * n * n matrices
     diagonal: torch.Tensor  # [J * 6] each joint's unknowns on the diagonal
-    joint_pairs: torch.Tensor  # [J * 36] each joint's 6 x 6 block (its anchoring, when read in the joint's frame)
+    joint_blocks: torch.Tensor  # [J * 18] each joint's two 3 x 3 diagonal blocks (its anchoring read in its frame)
     free: torch.Tensor  # [..., G, n] 1 for the unknowns solved for, 0 for the fixed joint's and the padding's
     n_designs: int
     n: int
+    # made from the above once per rollout rather than at every step:
+    stiffness_at: tuple[torch.Tensor, torch.Tensor]  # cat(pairs, diagonal), cat(pairs, joint_blocks): K's entries
+    loads_at: torch.Tensor  # cat(beam_dof, joint_dof): f's entries
+    kept: torch.Tensor  # [..., G, n, n] free_i free_j: K's rows and columns of the solved unknowns
+    eliminated: torch.Tensor  # [..., G, n, n] diag(1 - free): the identity on the held and padding unknowns
 
 
 def layout(g: GraphIndex, fixed: torch.Tensor) -> Layout:
@@ -152,12 +157,15 @@ def layout(g: GraphIndex, fixed: torch.Tensor) -> Layout:
     beam_dof = torch.cat([joint_dof.index_select(0, a), joint_dof.index_select(0, c)], -1)  # [B, 12]
     pairs = (beam_dof // n)[:, :, None] * n * n + (beam_dof % n)[:, :, None] * n + (beam_dof % n)[:, None, :]
     diagonal = design[:, None] * n * n + (6 * local[:, None] + k6) * (n + 1)
-    own = (6 * local[:, None] + k6)  # [J, 6] each joint's unknowns within its design
-    joint_pairs = design[:, None, None] * n * n + own[:, :, None] * n + own[:, None, :]
+    own = (6 * local[:, None] + k6).view(-1, 2, 3)  # [J, 2, 3] each joint's translations | rotations in its design
+    joint_blocks = design[:, None, None, None] * n * n + own[:, :, :, None] * n + own[:, :, None, :]  # [J, 2, 3, 3]
     held = (1.0 - fixed.double())[..., None].expand(*fixed.shape, 6).reshape(*fixed.shape[:-1], -1)
     free = torch.zeros(*fixed.shape[:-1], G * n, dtype=torch.float64).index_add(-1, joint_dof.reshape(-1), held)
-    return Layout((a, c), joint_dof.reshape(-1), beam_dof.reshape(-1), pairs.reshape(-1), diagonal.reshape(-1),
-                  joint_pairs.reshape(-1), free.unflatten(-1, (G, n)), G, n)
+    joint_dof, beam_dof, pairs = joint_dof.reshape(-1), beam_dof.reshape(-1), pairs.reshape(-1)
+    diagonal, joint_blocks, free = diagonal.reshape(-1), joint_blocks.reshape(-1), free.unflatten(-1, (G, n))
+    return Layout((a, c), joint_dof, beam_dof, pairs, diagonal, joint_blocks, free, G, n,
+                  (torch.cat([pairs, diagonal]), torch.cat([pairs, joint_blocks])), torch.cat([beam_dof, joint_dof]),
+                  free[..., :, None] * free[..., None, :], torch.diag_embed(1.0 - free))
 
 
 def solve(centres: torch.Tensor, middles: torch.Tensor, joint_raw: torch.Tensor, beam_raw: torch.Tensor,
@@ -172,8 +180,9 @@ def solve(centres: torch.Tensor, middles: torch.Tensor, joint_raw: torch.Tensor,
     autocast (a few 54 x 54 SPD systems, by Cholesky). frames (model.frame local or fixed): every joint's and beam's
     axes [..., J, 3, 3] and [..., B, 3, 3] (learn.frames), in which the outputs are read: a beam's stiffness and
     natural increment, a joint's anchoring and own motion are its own, turned into the global frame by T =
-    diag(R, R) (W -> T W T^T, e -> T e; a joint's anchoring then a full 6 x 6 block), so that a law that depends
-    only on what a block sees in its frame is the same law at every orientation of the block."""
+    diag(R, R) (W -> T W T^T, e -> T e; a joint's anchoring then two full 3 x 3 blocks), so that a law that depends
+    only on what a block sees in its frame is the same law at every orientation of the block. A beam's term is
+    assembled as (T^T D)^T W (T^T D), the same product with its connection turned into its frame instead."""
     out_dtype = centres.dtype
     plan = layout(g, fixed) if plan is None else plan
     a, c = plan.ends
@@ -185,34 +194,24 @@ def solve(centres: torch.Tensor, middles: torch.Tensor, joint_raw: torch.Tensor,
         e = wish(beam_raw[..., 21:27]) * scale
         m = positive(joint_raw[..., :6]) + EPS
         u = wish(joint_raw[..., 6:12]) * scale
-        if frames is None:  # the outputs are global: the anchorings diagonal
-            anchor_at, anchor, load = plan.diagonal, m.flatten(-2), (m * u).flatten(-2)
-        else:
-            Tj, Tb = (turn(R.double()) for R in frames)
-            W = Tb @ W @ Tb.transpose(-1, -2)
-            e = (Tb @ e[..., None])[..., 0]
-            M = Tj * m[..., None, :] @ Tj.transpose(-1, -2)  # T diag(m) T^T
-            anchor_at, anchor, load = plan.joint_pairs, M.flatten(-3), (Tj * m[..., None, :] @ u[..., None]).flatten(-3)
         D = connection(centres.index_select(-2, a), centres.index_select(-2, c), middles)
+        if frames is None:  # the outputs are global: the anchorings diagonal
+            anchor, load = m.flatten(-2), (m * u).flatten(-2)
+        else:  # D^T T W T^T D = (T^T D)^T W (T^T D): D's rows turned into the beam's frame, W and e kept in it
+            Rj, Rb = (R.double()[..., None, :, :] for R in frames)  # [..., n, 1, 3, 3]: for both halves of T
+            D = (Rb.transpose(-1, -2) @ D.unflatten(-2, (2, 3))).flatten(-3, -2)
+            m3, mu3 = m.unflatten(-1, (2, 3)), (m * u).unflatten(-1, (2, 3))  # translation | rotation halves
+            M = Rj * m3[..., None, :] @ Rj.transpose(-1, -2)  # T diag(m) T^T: diag(R diag(m_v) R^T, R diag(m_w) R^T)
+            anchor, load = M.flatten(-4), (Rj @ mu3[..., None]).flatten(-4)
         DtW = D.transpose(-1, -2) @ W  # [..., B, 12, 6]
         K = torch.zeros(*lead, G * n * n, dtype=torch.float64).index_add(
-            -1, torch.cat([plan.pairs, anchor_at]), torch.cat([(DtW @ D).flatten(-3), anchor], -1))
+            -1, plan.stiffness_at[frames is not None], torch.cat([(DtW @ D).flatten(-3), anchor], -1))
         f = torch.zeros(*lead, G * n, dtype=torch.float64).index_add(
-            -1, torch.cat([plan.beam_dof, plan.joint_dof]), torch.cat([(DtW @ e[..., None]).flatten(-3), load], -1))
-        free = plan.free
-        K = K.unflatten(-1, (G, n, n)) * (free[..., :, None] * free[..., None, :]) + torch.diag_embed(1.0 - free)
-        x = torch.cholesky_solve((f.unflatten(-1, (G, n)) * free)[..., None], torch.linalg.cholesky_ex(K)[0])
+            -1, plan.loads_at, torch.cat([(DtW @ e[..., None]).flatten(-3), load], -1))
+        K = K.unflatten(-1, (G, n, n)) * plan.kept + plan.eliminated
+        x = torch.cholesky_solve((f.unflatten(-1, (G, n)) * plan.free)[..., None], torch.linalg.cholesky_ex(K)[0])
         x = x.reshape(*lead, G * n).index_select(-1, plan.joint_dof).unflatten(-1, (J, 6)).to(out_dtype)
         return x[..., :3], x[..., 3:] / ROTATION_ARM
-
-
-def turn(R: torch.Tensor) -> torch.Tensor:
-    """[..., 3, 3] frames -> [..., 6, 6] T = diag(R, R): a block's (motion, r rotation) pair from its frame to the
-    global one."""
-    T = R.new_zeros(*R.shape[:-2], 6, 6)
-    T[..., :3, :3] = R
-    T[..., 3:, 3:] = R
-    return T
 
 
 def rotation(omega: torch.Tensor) -> torch.Tensor:
@@ -250,6 +249,7 @@ def rigidly_moved(joint_state: torch.Tensor, beam_state: torch.Tensor, v: torch.
 
 # each beam section's share of its start and its end joint's motion: start (1, 0), middle (1/2, 1/2), end (0, 1)
 _SHARES = torch.tensor([[1.0, 0.0], [0.5, 0.5], [0.0, 1.0]])
+_SHARE_WEIGHTS = _SHARES.T[:, None, :, None]  # [2 (start, end joint), 1, section, 1], as motions [..., 2, B, section, 3]
 _MIDDLE = torch.tensor([0.0, 1.0, 0.0])[:, None]  # the section that bows
 
 
@@ -261,7 +261,7 @@ def _rigidly_moved(joint_state, beam_state, v, omega, a, c, hermite):
     p = joint_state[..., JOINT.origin_slice]
     jg = joint_state[..., JOINT.geometry_slice].unflatten(-1, (-1, 3))  # [..., J, fields, 3]
     point = POINTS[JOINT.name].to(jg)  # the centre (the joint's origin) moves by v, its vectors turn
-    jg = point * (jg + v[..., None, :]) + (1.0 - point) * torch.einsum("...ij,...fj->...fi", R, jg)
+    jg = point * (jg + v[..., None, :]) + (1.0 - point) * (jg @ R.transpose(-1, -2))
 
     bg = beam_state[..., BEAM.geometry_slice].unflatten(-1, (len(SECTIONS), 3, 3))  # [..., B, section, field, 3]
     centres = bg[..., 0, :]  # [..., B, section, 3]
@@ -269,14 +269,14 @@ def _rigidly_moved(joint_state, beam_state, v, omega, a, c, hermite):
     arms = centres[..., None, :, :, :] - p.index_select(-2, ac).unflatten(-2, (2, B))[..., None, :]
     # each end joint's rigid displacement of every section centre: v + R (x - p) - (x - p)  [..., 2, B, section, 3]
     motions = (v.index_select(-2, ac).unflatten(-2, (2, B))[..., None, :] - arms
-               + torch.einsum("...kbij,...kbsj->...kbsi", R_ends, arms))
-    moved = centres + torch.einsum("sk,...kbsi->...bsi", _SHARES.to(centres), motions)
+               + arms @ R_ends.transpose(-1, -2))
+    moved = centres + (_SHARE_WEIGHTS.to(centres) * motions).sum(-4)  # sum over k of shares[s, k] motions[k, b, s]
     if hermite:  # half the rigid motions' bow: - (R_a - R_c)(s_c - s_a) / 8, on the middle section
         chord = centres[..., SECTIONS.index("end"), :] - centres[..., SECTIONS.index("start"), :]
         bow = torch.einsum("...bij,...bj->...bi", R_ends[..., 0, :, :, :] - R_ends[..., 1, :, :, :], chord)
         moved = moved - 0.125 * _MIDDLE.to(moved) * bow[..., None, :]
     R_sections = torch.stack([R_ends[..., 0, :, :, :], R_mid, R_ends[..., 1, :, :, :]], -3)  # in SECTIONS order
-    vectors = torch.einsum("...sij,...sfj->...sfi", R_sections, bg[..., 1:, :])
+    vectors = bg[..., 1:, :] @ R_sections.transpose(-1, -2)
     bg = torch.cat([moved[..., None, :], vectors], -2).flatten(-3)
     return (torch.cat([jg.flatten(-2), joint_state[..., JOINT.stress_slice]], -1),
             torch.cat([bg, beam_state[..., BEAM.stress_slice]], -1))

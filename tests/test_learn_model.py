@@ -178,6 +178,36 @@ def test_local_frames_are_orthonormal_and_rotations_invert(features):
         assert torch.allclose(back, state, atol=1e-4)
 
 
+def test_vectors_and_stresses_rotate_into_and_out_of_frames_as_tensors():
+    """frames.rotate_vectors: R^T v into a frame, R v out of it; frames.rotate_stresses: R^T s R and R s R^T of the
+    Voigt stresses (xx yy zz xy xz yz) as 3 x 3 tensors, at random 3-D frames and several stacked fields."""
+    from scipy.spatial.transform import Rotation
+    from learn import frames
+    R = torch.as_tensor(Rotation.random(10, random_state=7).as_matrix()).reshape(2, 5, 3, 3)
+    gen = torch.Generator().manual_seed(0)
+    v = torch.randn(2, 5, 4 * 3, generator=gen, dtype=torch.float64)
+    s = torch.randn(2, 5, 3 * 6, generator=gen, dtype=torch.float64)
+    rows, cols = [0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]
+
+    def tensor(voigt):  # [..., 6] -> [..., 3, 3]
+        t = voigt.new_zeros(*voigt.shape[:-1], 3, 3)
+        t[..., rows, cols] = voigt
+        t[..., cols, rows] = voigt
+        return t
+
+    vs = v.unflatten(-1, (4, 3))
+    ts = tensor(s.unflatten(-1, (3, 6)))
+    Rf = R[..., None, :, :]  # the same frame for every field of a block
+    torch.testing.assert_close(frames.rotate_vectors(v, R, to_local=True).unflatten(-1, (4, 3)),
+                               (Rf.transpose(-1, -2) @ vs[..., None])[..., 0])
+    torch.testing.assert_close(frames.rotate_vectors(v, R, to_local=False).unflatten(-1, (4, 3)),
+                               (Rf @ vs[..., None])[..., 0])
+    torch.testing.assert_close(tensor(frames.rotate_stresses(s, R, to_local=True).unflatten(-1, (3, 6))),
+                               Rf.transpose(-1, -2) @ ts @ Rf)
+    torch.testing.assert_close(tensor(frames.rotate_stresses(s, R, to_local=False).unflatten(-1, (3, 6))),
+                               Rf @ ts @ Rf.transpose(-1, -2))
+
+
 @pytest.mark.parametrize("frame", ["local", "fixed"])
 def test_rotated_frame_simulator_is_equivariant_to_rotations_about_z(features, frame):
     """Rotating a design about z (through the fixed joint) rotates its predicted next state the same way; with the

@@ -25,9 +25,17 @@ def features():
     return [extract(synthetic_episode(3, 3, 5, 3, 3, 5, seed=s), name=f"ep{s}.h5") for s in range(3)]
 
 
-def energy(x, centres, middles, joint_raw, beam_raw, fixed, a, c, scale):
-    """The module doc's energy, written out joint by joint and beam by beam (x: [J, 6] = (v, r omega))."""
+def energy(x, centres, middles, joint_raw, beam_raw, fixed, a, c, scale, frames=None):
+    """The module doc's energy, written out joint by joint and beam by beam (x: [J, 6] = (v, r omega)); with frames
+    (Rj [J, 3, 3], Rb [B, 3, 3]) every term read in its block's frame and turned by T = diag(R, R): W -> T W T^T,
+    e -> T e, diag(m) -> T diag(m) T^T, u -> T u."""
     r = stiffness.ROTATION_ARM
+
+    def turn(R):
+        T = torch.zeros(6, 6, dtype=torch.float64)
+        T[:3, :3] = T[3:, 3:] = R
+        return T
+
     total = torch.zeros((), dtype=torch.float64)
     for b in range(len(a)):
         ia, ic, q = int(a[b]), int(c[b]), middles[b]
@@ -35,11 +43,21 @@ def energy(x, centres, middles, joint_raw, beam_raw, fixed, a, c, scale):
         rel = torch.cat([vc + torch.cross(wc, q - centres[ic], dim=0) - va - torch.cross(wa, q - centres[ia], dim=0),
                          r * (wc - wa)])
         W = stiffness.spd(beam_raw[b, :21].double())
-        d = rel - stiffness.wish(beam_raw[b, 21:].double()) * scale
+        e = stiffness.wish(beam_raw[b, 21:].double()) * scale
+        if frames is not None:
+            T = turn(frames[1][b])
+            W, e = T @ W @ T.T, T @ e
+        d = rel - e
         total = total + 0.5 * d @ W @ d
     m = stiffness.positive(joint_raw[:, :6].double()) + stiffness.EPS
     u = stiffness.wish(joint_raw[:, 6:].double()) * scale
-    return total + 0.5 * (m * (x - u) ** 2).sum()
+    if frames is None:
+        return total + 0.5 * (m * (x - u) ** 2).sum()
+    for j in range(len(x)):
+        T = turn(frames[0][j])
+        d = x[j] - T @ u[j]
+        total = total + 0.5 * d @ (T @ torch.diag(m[j]) @ T.T) @ d
+    return total
 
 
 def random_outputs(J, B, seed=0):
@@ -62,6 +80,29 @@ def test_the_solve_is_the_minimum_of_the_energy_and_keeps_the_fixed_joint(featur
     (grad,) = torch.autograd.grad(E, x)
     assert grad[~fixed].abs().max() < 1e-5 * (1 + x.abs().max())  # stationary in every free unknown (float32 out)
     assert x[fixed].abs().max() == 0 and x[~fixed].abs().max() > 0.1  # the fixed joint's unknowns are eliminated
+
+
+def test_read_in_frames_the_solve_is_the_minimum_of_the_energy_with_every_term_turned(features):
+    """The assembly in frames (each beam's connection turned into its frame, each joint's anchoring as two 3 x 3
+    blocks) against the energy written out with every term turned by its block's T, at random frames."""
+    from scipy.spatial.transform import Rotation
+    f = features[1]
+    g = GraphSet.build([f]).static.index
+    centres = torch.as_tensor(f.joint_state[0][:, JOINT.origin_slice], dtype=torch.float64)
+    middles = torch.as_tensor(f.beam_state[0][:, 9:12], dtype=torch.float64)
+    J, B = f.incidence.n_joints, f.incidence.n_beams
+    joint_raw, beam_raw = random_outputs(J, B, seed=3)
+    fixed = torch.as_tensor(f.joint_bc[:, JOINT.bc.slice("fixed")][:, 0] > 0.5)
+    frames = (torch.as_tensor(Rotation.random(J, random_state=3).as_matrix()),
+              torch.as_tensor(Rotation.random(B, random_state=4).as_matrix()))
+    scale = torch.tensor(1.5)
+    v, omega = stiffness.solve(centres.float(), middles.float(), joint_raw, beam_raw, fixed, g, scale, frames=frames)
+    x = torch.cat([v, omega * stiffness.ROTATION_ARM], -1).double().requires_grad_(True)
+    a, c = g.beam_ends()
+    (grad,) = torch.autograd.grad(energy(x, centres, middles, joint_raw, beam_raw, fixed.double(), a, c, scale,
+                                         frames), x)
+    assert grad[~fixed].abs().max() < 1e-5 * (1 + x.abs().max())  # stationary (float32 out)
+    assert x[fixed].abs().max() == 0 and x[~fixed].abs().max() > 0.1
 
 
 def test_a_lone_beam_on_a_fixed_joint_gets_its_natural_increment():
