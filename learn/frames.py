@@ -77,7 +77,15 @@ def design_frame(joint_state: torch.Tensor, fixed: torch.Tensor,
 def rotate_vectors(x: torch.Tensor, R: torch.Tensor, to_local: bool) -> torch.Tensor:
     """[..., n, 3k] stacked 3-vectors, R [..., n, 3, 3] -> R^T v (to_local) or R v."""
     v = x.unflatten(-1, (-1, 3))  # [..., n, k, 3]: rows, so R^T v is v @ R and R v is v @ R^T
-    return (v @ (R if to_local else R.transpose(-1, -2))).flatten(-2)
+    return blocks_times(v, R if to_local else R.transpose(-1, -2)).flatten(-2)
+
+
+def blocks_times(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """a [..., p, q] @ b [..., q, r] per block; when both have the same leading axes, as one bmm over them (a few
+    operations, not the dozen of a broadcasting matmul: the rollout's cost is the count of small operations)."""
+    if a.shape[:-2] != b.shape[:-2]:
+        return a @ b
+    return torch.bmm(a.reshape(-1, *a.shape[-2:]), b.reshape(-1, *b.shape[-2:])).view(*a.shape[:-1], b.shape[-1])
 
 
 def stress_rotation(R: torch.Tensor) -> torch.Tensor:
@@ -90,7 +98,7 @@ def stress_rotation(R: torch.Tensor) -> torch.Tensor:
 def rotate_stresses(x: torch.Tensor, R: torch.Tensor, to_local: bool) -> torch.Tensor:
     """[..., n, 6k] stacked Voigt stresses -> R^T s R (to_local) or R s R^T."""
     Q = stress_rotation(R.transpose(-1, -2) if to_local else R)  # [..., n, 6, 6]
-    return (x.unflatten(-1, (-1, 6)) @ Q.transpose(-1, -2)).flatten(-2)
+    return blocks_times(x.unflatten(-1, (-1, 6)), Q.transpose(-1, -2)).flatten(-2)
 
 
 def rotate_state(x: torch.Tensor, block: Block, R: torch.Tensor, to_local: bool) -> torch.Tensor:
@@ -106,6 +114,6 @@ def gravity(R: torch.Tensor) -> torch.Tensor:
 
 def relative_rotation(R_from: torch.Tensor, R_to: torch.Tensor) -> torch.Tensor:
     """[..., 6] the first two columns of R_from^T R_to (the third follows from them)."""
-    return (R_from.transpose(-1, -2) @ R_to)[..., :2].flatten(-2)
+    return blocks_times(R_from.transpose(-1, -2), R_to)[..., :2].flatten(-2)
 
 
