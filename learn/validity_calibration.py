@@ -9,8 +9,9 @@ reports were measured with). For each indicator alone, and for those that judge 
 bad designs flagged - the share of good designs flagged (ties: the fewer flags). The `check` reports, of other models
 or other designs, measure the chosen thresholds where they were not fitted.
 
-Writes calibration.json, calibration.md (a table per rule and the lines for conf/validity/default.yaml) and
-calibration.png (each indicator against the error, the thresholds drawn).
+Writes calibration.json, calibration.md (a table per rule and the lines for conf/validity/default.yaml: at its top
+level for a model.frame=global model, under its frame's section, e.g. `local:`, for a rotated-frame one) and
+calibration.png (each indicator against the error, the thresholds drawn). Reports of one frame only.
 """
 from __future__ import annotations
 
@@ -86,6 +87,7 @@ def calibrate(reports: list[dict], error_rel: float | None = None, check: list[d
     others = pooled(check, "check")[0] if check else None
     other_values = validity_indicators(others) if others else {}
     out = {"error_rel": error_rel, "n_designs": len(designs), "n_bad": int((errors > error_rel).sum()),
+           "frame": same_frame(reports + (check or [])),
            "range_margin": reports[0].get("validity_thresholds", {}).get("range_margin"),
            "spearman": {k: rank_correlation(v, errors) for k, v in values.items()}, "rules": []}
     for keys in rules:
@@ -97,6 +99,25 @@ def calibrate(reports: list[dict], error_rel: float | None = None, check: list[d
             rule["check"] = flag_outcome(other_errors, flagged, error_rel)
         out["rules"].append(rule)
     return out
+
+
+def model_frame(model: dict) -> str:
+    """The section of conf/validity/default.yaml whose thresholds judge the model a report describes (its `model`
+    args; an ensemble's `member_args` when they differ): a rotated frame's own section when any member reads its
+    blocks in one (learn.validity.thresholds), else the top level ("global")."""
+    rotated = sorted({a.get("frame", "global") for a in model.get("member_args", [model])} - {"global"})
+    if len(rotated) > 1:
+        raise ValueError(f"reports: the model's members read their blocks in frames {rotated}; calibrate each apart")
+    return rotated[0] if rotated else "global"
+
+
+def same_frame(reports: list[dict]) -> str:
+    """The one model_frame of every report (thresholds fitted to one frame's rollouts judge only that frame's)."""
+    frames = {model_frame(r.get("model", {})) for r in reports}
+    if len(frames) > 1:
+        raise ValueError(f"reports: models of different frames {sorted(frames)} (their thresholds differ, "
+                         "conf/validity/default.yaml); calibrate each frame apart")
+    return frames.pop()
 
 
 def _share(o: dict) -> str:
@@ -119,9 +140,11 @@ def markdown(result: dict) -> str:
                      f"{'-' if check is None else _share(check)} |")
     joint = next((r for r in result["rules"] if len(r["indicators"]) > 1), None)
     if joint is not None:
-        lines += ["", f"For conf/validity/default.yaml (range_margin {result['range_margin']}; 1.0 = never flags):", "",
-                  "```yaml",
-                  *(f"{CONF_KEYS[k]}: {1.0 if t is None else min(t, 1.0):.4g}"
+        frame = result.get("frame", "global")
+        where, indent = ("", "") if frame == "global" else (f", under `{frame}:` (a model.frame={frame} model)", "  ")
+        lines += ["", f"For conf/validity/default.yaml{where} (range_margin {result['range_margin']}; 1.0 = never "
+                  "flags):", "", "```yaml", *([f"{frame}:"] if indent else []),
+                  *(f"{indent}{CONF_KEYS[k]}: {1.0 if t is None else min(t, 1.0):.4g}"
                     for k, t in zip(joint["indicators"], joint["thresholds"])), "```"]
     return "\n".join(lines) + "\n"
 

@@ -49,6 +49,25 @@ def test_the_pair_catches_what_each_indicator_misses_and_the_check_reports_measu
     assert "max_dislocation_rel: 0.035" in text and "max_out_of_range: 0.3" in text
 
 
+def test_the_lines_of_a_local_frame_model_go_under_its_section_of_conf():
+    """A model.frame=local model is judged by conf/validity/default.yaml's `local:` thresholds (learn.validity.
+    thresholds), so its calibration's lines are written under `local:`; reports of models in different frames are
+    not pooled."""
+    import yaml
+    local = {**report(ROWS), "model": {"frame": "local", "update": "stiffness"}}
+    text = markdown(calibrate([local]))
+    block = yaml.safe_load(text.split("```yaml")[1].split("```")[0])
+    assert block == {"local": {"max_dislocation_rel": pytest.approx(0.035), "max_out_of_range": pytest.approx(0.3)}}
+    assert "under `local:`" in text
+    glob = {**report(ROWS), "model": {"frame": "global"}}
+    assert set(yaml.safe_load(markdown(calibrate([glob])).split("```yaml")[1].split("```")[0])) == {
+        "max_dislocation_rel", "max_out_of_range"}
+    with pytest.raises(ValueError, match="models of different frames"):
+        calibrate([local, glob])
+    ensemble = {**report(ROWS), "model": {"frame": "global", "member_args": [{"frame": "global"}, {"frame": "local"}]}}
+    assert calibrate([ensemble])["frame"] == "local"  # as learn.validity.thresholds judges it
+
+
 def test_reports_that_mean_different_things_or_no_bad_design_rule_are_refused():
     with pytest.raises(ValueError, match="different validity.range_margin"):
         calibrate([report(ROWS, margin=0.0), report(ROWS, margin=0.25)])
