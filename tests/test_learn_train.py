@@ -51,12 +51,24 @@ def tiny(data_dir, run_dir, *extra):
             "split.train=0.5", "split.val=0.25", "split.test=0.25", *extra]
 
 
+# the thesis' model (the default until session 33: additive update, global frame, stress read back); the default is
+# now the local-frame stiffness model (conf/model/double_gn.yaml)
+THESIS_MODEL = ("model.update=additive", "model.frame=global", "model.stress_input=true")
+
+
+def trained_run(data_dir, run, *extra):
+    return run, train(cfg_for("train", tiny(data_dir, run, "epochs=16", "monitor=val_loss", "optim.lr=3e-3",
+                                            "optim.lr_drop_at=0.75", "batch_size=1", *extra)))
+
+
 @pytest.fixture(scope="module")
 def trained(data_dir, tmp_path_factory):
-    run = tmp_path_factory.mktemp("run")
-    summary = train(cfg_for("train", tiny(data_dir, run, "epochs=16", "monitor=val_loss", "optim.lr=3e-3",
-                                                "optim.lr_drop_at=0.75", "batch_size=1")))
-    return run, summary
+    return trained_run(data_dir, tmp_path_factory.mktemp("run"))
+
+
+@pytest.fixture(scope="module")
+def trained_thesis(data_dir, tmp_path_factory):
+    return trained_run(data_dir, tmp_path_factory.mktemp("run_thesis"), *THESIS_MODEL)
 
 
 def test_training_reduces_loss_and_writes_a_weights_only_checkpoint(trained):
@@ -366,12 +378,14 @@ def test_training_options_reduce_the_loss(data_dir, tmp_path, option):
 def test_turning_per_batch_trains_as_the_stored_copies_do(data_dir, tmp_path):
     """rotations_stored=false (learn.dataset.TurnedSet) draws the same batches as the stored set (tested batch for batch
     in test_learn_symmetry), so the same seed trains alike: not to round-off, since the PCA's basis within equal-variance
-    subspaces (x and y of a turned set) follows the round-off of its covariance (measured: losses within 0.1 %, the
-    validation rollout within 1.1 % after 3 epochs); a bad value is refused naming the field."""
+    subspaces (x and y of a turned set) follows the round-off of its covariance (measured on the thesis' model: losses
+    within 0.1 %, the validation rollout within 1.1 % after 3 epochs; the local-frame stiffness model, which sees no
+    turn at all, amplifies that round-off to 12 % of its validation rollout at this tiny scale); a bad value is
+    refused naming the field."""
     runs = {}
     for stored in (True, False):
         train(cfg_for("train", tiny(data_dir, tmp_path / str(stored), "epochs=3", "rotations=3", "batch_size=2",
-                                    "rollout_horizon=3", f"rotations_stored={str(stored).lower()}")))
+                                    "rollout_horizon=3", f"rotations_stored={str(stored).lower()}", *THESIS_MODEL)))
         runs[stored] = checkpoint.load(tmp_path / str(stored) / "last.pt")["history"]
     for a, b in zip(runs[True], runs[False]):
         assert a["train_loss"] == pytest.approx(b["train_loss"], rel=1e-2)
@@ -758,12 +772,15 @@ def test_the_small_experiment_is_the_medium_one_on_the_episodes_generated_so_far
         train(cfg_for("train", tiny(data_dir, tmp_path / "strict", "epochs=1", f"split_from={split_file}")))
 
 
-def test_bf16_training_rounds_the_network_not_the_states_and_a_bad_precision_is_refused(trained, data_dir, tmp_path):
+def test_bf16_training_rounds_the_network_not_the_states_and_a_bad_precision_is_refused(trained_thesis, data_dir,
+                                                                                        tmp_path):
     """precision=bf16 autocasts the loss's forward pass: the network's matrix products are bfloat16 (8 bits of
     mantissa), but the states it adds dG to stay float32, and so does the loss, which moves by well under 1 % over
-    10 steps (measured on runs/s14_full, 8 designs: +0.14 %; states rounded to bfloat16 every step: +0.4 %)."""
+    10 steps for the thesis' additive model (measured on runs/s14_full, 8 designs: +0.14 %; states rounded to bfloat16
+    every step: +0.4 %). A barely trained stiffness model is far more sensitive (its solve amplifies the rounded
+    stiffnesses: x2 the loss here); on trained ones see docs/learned_simulator.md, session 33."""
     from learn.metrics import multistep_loss
-    model = checkpoint.model_from(checkpoint.load(trained[0] / "best.pt")).eval()
+    model = checkpoint.model_from(checkpoint.load(trained_thesis[0] / "best.pt")).eval()
     batch = GraphSet.build(load_features(sorted(Path(data_dir).glob("*.h5"))))
     with torch.no_grad():
         exact = float(multistep_loss(model, batch, 10))
