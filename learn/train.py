@@ -165,6 +165,22 @@ def loss_terms(cfg: DictConfig) -> dict:
             "noise_every_step": flag_checked(cfg, "noise_every_step")}
 
 
+AUTO_ROTATIONS = 10  # rotations: auto for a model that reads the global frame (the thesis' augmentation)
+
+
+def rotations_of(cfg: DictConfig) -> int:
+    """conf/train.yaml rotations: a count >= 0, or auto: AUTO_ROTATIONS for model.frame=global, 1 (none) for local and
+    fixed, whose inputs are exactly invariant to turning a design about z (each block read in its own frame, or in
+    the fixed joint's; gravity is along z), so that a turned copy is the same sample again, not new data."""
+    value = cfg.get("rotations", 1)
+    if value == "auto":
+        return AUTO_ROTATIONS if cfg.model.get("frame", "global") == "global" else 1
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise ValueError(f"rotations={value!r}: must be a count >= 0 or auto (10 in the global frame, 1 in the "
+                         "local and fixed ones, which turning about z does not change)")
+    return value
+
+
 def flag_checked(cfg: DictConfig, name: str) -> bool:
     """A true/false key of conf/train.yaml (false when absent, as in configs saved before it), else an error naming
     it."""
@@ -288,6 +304,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
     if cfg.get("precision", "fp32") == "auto":  # the checkpoint's config records what was used
         log.info("precision auto: %s (native bfloat16 %s)", precision, "found" if precision == "bf16" else "absent")
         cfg.precision = precision
+    cfg.rotations = rotations_of(cfg)  # the checkpoint's config records the count auto resolved to
     gradient_carry(cfg)
     split_missing_checked(cfg.get("split_missing", "error"))
     n_probe = integer_in(cfg.get("train_probe", 0), "train_probe", 0, 10**6,

@@ -871,3 +871,17 @@ def test_every_key_of_a_model_config_reaches_the_model_as_given(data_dir, tmp_pa
     assert checkpoint.load_model(tmp_path / "last.pt").beam_middle == "hermite"
     with pytest.raises(ValueError, match="model.passes=5: must be an integer in \\[1, 4\\]"):
         model_args(cfg_for("train", ["model.passes=5"]).model)
+
+
+def test_rotations_auto_turns_only_a_model_that_a_turn_changes():
+    """rotations=auto: the thesis' 10 turned copies for a model reading the global frame, none for the local and fixed
+    frames, whose inputs a turn about z leaves as they were (test_learn_model checks that invariance); a bad count is
+    refused naming the field."""
+    from learn.train import AUTO_ROTATIONS, rotations_of
+    for frame, want in (("global", AUTO_ROTATIONS), ("local", 1), ("fixed", 1)):
+        assert rotations_of(OmegaConf.create({"rotations": "auto", "model": {"frame": frame}})) == want
+    assert rotations_of(OmegaConf.create({"rotations": 4, "model": {"frame": "local"}})) == 4  # as given
+    assert cfg_for("train", [])["rotations"] == "auto"
+    for bad in (-1, 2.5, "ten", True):
+        with pytest.raises(ValueError, match="rotations=.*must be a count >= 0 or auto"):
+            rotations_of(OmegaConf.create({"rotations": bad, "model": {"frame": "global"}}))
