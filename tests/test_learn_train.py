@@ -1,6 +1,7 @@
 """learn.train / rollout / evaluate / validity end to end on tiny synthetic episodes (Hydra compose API)."""
 import csv
 import json
+import math
 import os
 import re
 import subprocess
@@ -885,3 +886,34 @@ def test_rotations_auto_turns_only_a_model_that_a_turn_changes():
     for bad in (-1, 2.5, "ten", True):
         with pytest.raises(ValueError, match="rotations=.*must be a count >= 0 or auto"):
             rotations_of(OmegaConf.create({"rotations": bad, "model": {"frame": "global"}}))
+
+
+def test_a_training_that_diverges_stops_and_keeps_the_best_finite_weights(data_dir, tmp_path, monkeypatch):
+    """A non-finite loss ends the run at that epoch with a stop reason that says so; last.pt and best.pt hold the best
+    finite epoch's weights, never non-finite ones (here the weights are poisoned after epoch 2's update), and a run
+    with no finite epoch saves nothing (a learning rate of 1e4 without gradient clipping)."""
+    import learn.train as learn_train
+    real = learn_train.train_epoch
+
+    def poisoned(model, opt, train_set, cfg, epoch, average):
+        losses = real(model, opt, train_set, cfg, epoch, average)
+        if epoch >= 2:
+            with torch.no_grad():
+                for p in model.parameters():
+                    p.fill_(float("nan"))
+            return [float("nan")]
+        return losses
+
+    monkeypatch.setattr(learn_train, "train_epoch", poisoned)
+    summary = train(cfg_for("train", tiny(data_dir, tmp_path / "a", "epochs=6", "batch_size=1", *THESIS_MODEL)))
+    assert summary["stop"].startswith("diverged at epoch 2") and summary["epochs_run"] == 3
+    for name in ("last.pt", "best.pt"):
+        state = checkpoint.load(tmp_path / "a" / name)["state_dict"]
+        assert all(torch.isfinite(v).all() for v in state.values() if v.is_floating_point())
+    last = checkpoint.load(tmp_path / "a" / "last.pt")
+    assert last["finished"] and not math.isfinite(last["history"][-1]["train_loss"])  # the diverged epoch on record
+    monkeypatch.setattr(learn_train, "train_epoch", real)
+    summary = train(cfg_for("train", tiny(data_dir, tmp_path / "b", "epochs=4", "optim.lr=1e4", "optim.grad_clip=0",
+                                          "batch_size=1", *THESIS_MODEL)))
+    assert summary["stop"].startswith("diverged at epoch 0") and summary["stop"].endswith("no finite epoch: nothing saved")
+    assert not (tmp_path / "b" / "last.pt").exists() and not (tmp_path / "b" / "best.pt").exists()
