@@ -751,13 +751,14 @@ def test_the_medium_experiment_is_the_reference_on_the_first_260_episodes_in_one
 
 
 def test_the_small_experiment_is_the_medium_one_on_the_episodes_generated_so_far(data_dir, tmp_path):
-    """conf/experiment/small.yaml: the medium recipe with half the rotations on whatever part of data/ds_default
+    """conf/experiment/small.yaml: the medium recipe with 5 rotations on whatever part of data/ds_default
     exists, the pinned held-out designs among it held out and the absent ones left out (split_missing=drop)."""
     from learn.train import precision_of
     small = OmegaConf.to_container(cfg_for("train", ["+experiment=small"]))
     medium = OmegaConf.to_container(cfg_for("train", ["+experiment=medium"]))
     assert {k for k in medium if small[k] != medium[k]} == {"run_dir", "split_missing", "train_designs", "rotations"}
     assert small["split_missing"] == "drop" and small["train_designs"] is None and small["rotations"] == 5
+    assert medium["rotations"] == 4  # sessions 31-32's local-frame recipe (conf/experiment/reference.yaml)
     names = sorted(p.name for p in Path(data_dir).glob("*.h5"))
     split_file = tmp_path / "held_out.yaml"  # one of the data's episodes held out, one that is not generated
     split_file.write_text(f"val: [{names[0]}, episode_99999.h5]\ntest: [{names[1]}]\n")
