@@ -65,21 +65,31 @@ def random_outputs(J, B, seed=0):
     return torch.randn(J, stiffness.JOINT_OUT, generator=gen), torch.randn(B, stiffness.BEAM_OUT, generator=gen)
 
 
-def test_the_solve_is_the_minimum_of_the_energy_and_keeps_the_fixed_joint(features):
-    f = features[0]
+def solve_inputs(f, seed: int = 0):
+    """A design's graph, joint centres, beam middle centres (float64), random network outputs and fixed flags."""
     g = GraphSet.build([f]).static.index
     centres = torch.as_tensor(f.joint_state[0][:, JOINT.origin_slice], dtype=torch.float64)
     middles = torch.as_tensor(f.beam_state[0][:, 9:12], dtype=torch.float64)  # middle_center
-    joint_raw, beam_raw = random_outputs(f.incidence.n_joints, f.incidence.n_beams)
+    joint_raw, beam_raw = random_outputs(f.incidence.n_joints, f.incidence.n_beams, seed)
     fixed = torch.as_tensor(f.joint_bc[:, JOINT.bc.slice("fixed")][:, 0] > 0.5)
-    scale = torch.tensor(2.0)
-    v, omega = stiffness.solve(centres, middles, joint_raw, beam_raw, fixed, g, scale)
+    return g, centres, middles, joint_raw, beam_raw, fixed
+
+
+def assert_minimum_of_energy(f, seed: int, scale: torch.Tensor, frames=None):
+    """solve's answer (float32 out) is stationary in every free unknown of the written-out energy, the fixed joint's
+    unknowns are eliminated, and the answer moves."""
+    g, centres, middles, joint_raw, beam_raw, fixed = solve_inputs(f, seed)
+    v, omega = stiffness.solve(centres.float(), middles.float(), joint_raw, beam_raw, fixed, g, scale, frames=frames)
     x = torch.cat([v, omega * stiffness.ROTATION_ARM], -1).double().requires_grad_(True)
     a, c = g.beam_ends()
-    E = energy(x, centres, middles, joint_raw, beam_raw, fixed.double(), a, c, scale)
-    (grad,) = torch.autograd.grad(E, x)
+    (grad,) = torch.autograd.grad(energy(x, centres, middles, joint_raw, beam_raw, fixed.double(), a, c, scale,
+                                         frames), x)
     assert grad[~fixed].abs().max() < 1e-5 * (1 + x.abs().max())  # stationary in every free unknown (float32 out)
     assert x[fixed].abs().max() == 0 and x[~fixed].abs().max() > 0.1  # the fixed joint's unknowns are eliminated
+
+
+def test_the_solve_is_the_minimum_of_the_energy_and_keeps_the_fixed_joint(features):
+    assert_minimum_of_energy(features[0], 0, torch.tensor(2.0))
 
 
 def test_read_in_frames_the_solve_is_the_minimum_of_the_energy_with_every_term_turned(features):
@@ -87,22 +97,9 @@ def test_read_in_frames_the_solve_is_the_minimum_of_the_energy_with_every_term_t
     blocks) against the energy written out with every term turned by its block's T, at random frames."""
     from scipy.spatial.transform import Rotation
     f = features[1]
-    g = GraphSet.build([f]).static.index
-    centres = torch.as_tensor(f.joint_state[0][:, JOINT.origin_slice], dtype=torch.float64)
-    middles = torch.as_tensor(f.beam_state[0][:, 9:12], dtype=torch.float64)
-    J, B = f.incidence.n_joints, f.incidence.n_beams
-    joint_raw, beam_raw = random_outputs(J, B, seed=3)
-    fixed = torch.as_tensor(f.joint_bc[:, JOINT.bc.slice("fixed")][:, 0] > 0.5)
-    frames = (torch.as_tensor(Rotation.random(J, random_state=3).as_matrix()),
-              torch.as_tensor(Rotation.random(B, random_state=4).as_matrix()))
-    scale = torch.tensor(1.5)
-    v, omega = stiffness.solve(centres.float(), middles.float(), joint_raw, beam_raw, fixed, g, scale, frames=frames)
-    x = torch.cat([v, omega * stiffness.ROTATION_ARM], -1).double().requires_grad_(True)
-    a, c = g.beam_ends()
-    (grad,) = torch.autograd.grad(energy(x, centres, middles, joint_raw, beam_raw, fixed.double(), a, c, scale,
-                                         frames), x)
-    assert grad[~fixed].abs().max() < 1e-5 * (1 + x.abs().max())  # stationary (float32 out)
-    assert x[fixed].abs().max() == 0 and x[~fixed].abs().max() > 0.1
+    frames = (torch.as_tensor(Rotation.random(f.incidence.n_joints, random_state=3).as_matrix()),
+              torch.as_tensor(Rotation.random(f.incidence.n_beams, random_state=4).as_matrix()))
+    assert_minimum_of_energy(f, 3, torch.tensor(1.5), frames)
 
 
 def test_a_lone_beam_on_a_fixed_joint_gets_its_natural_increment():
@@ -245,12 +242,8 @@ def test_read_in_each_blocks_frame_the_solve_turns_with_the_whole_grid(features)
     by Q, exactly; with every frame the identity they answer as the global outputs do."""
     from scipy.spatial.transform import Rotation
     f = features[0]
-    g = GraphSet.build([f]).static.index
-    centres = torch.as_tensor(f.joint_state[0][:, JOINT.origin_slice], dtype=torch.float64)
-    middles = torch.as_tensor(f.beam_state[0][:, 9:12], dtype=torch.float64)
+    g, centres, middles, joint_raw, beam_raw, fixed = solve_inputs(f, seed=5)
     J, B = f.incidence.n_joints, f.incidence.n_beams
-    joint_raw, beam_raw = random_outputs(J, B, seed=5)
-    fixed = torch.as_tensor(f.joint_bc[:, JOINT.bc.slice("fixed")][:, 0] > 0.5)
     scale = torch.tensor(1.5)
     eye = (torch.eye(3, dtype=torch.float64).expand(J, 3, 3), torch.eye(3, dtype=torch.float64).expand(B, 3, 3))
     plain = stiffness.solve(centres, middles, joint_raw, beam_raw, fixed, g, scale)
