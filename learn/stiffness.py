@@ -133,16 +133,13 @@ class Layout:
     so built once per graph (Static.stiffness_layout). G designs of n = 6 N unknowns (N: the most joints of one)."""
     ends: tuple[torch.Tensor, torch.Tensor]  # [B] twice: every beam's start and end joint (GraphIndex.beam_ends)
     joint_dof: torch.Tensor  # [J * 6] each joint's unknowns among all designs' stacked G * n
-    beam_dof: torch.Tensor  # [B * 12] each beam's two joints' unknowns
-    pairs: torch.Tensor  # [B * 144] each beam's 12 x 12 block in the stacked G * n * n matrices
-    diagonal: torch.Tensor  # [J * 6] each joint's unknowns on the diagonal
-    joint_blocks: torch.Tensor  # [J * 18] each joint's two 3 x 3 diagonal blocks (its anchoring read in its frame)
     free: torch.Tensor  # [..., G, n] 1 for the unknowns solved for, 0 for the fixed joint's and the padding's
     n_designs: int
     n: int
-    # made from the above once per rollout rather than at every step:
-    stiffness_at: tuple[torch.Tensor, torch.Tensor]  # cat(pairs, diagonal), cat(pairs, joint_blocks): K's entries
-    loads_at: torch.Tensor  # cat(beam_dof, joint_dof): f's entries
+    # K's entries in the stacked G * n * n matrices: every beam's 12 x 12 block, then every joint's anchoring, either on
+    # the diagonal [J * 6] (global outputs) or as its two 3 x 3 diagonal blocks [J * 18] (read in the joint's frame)
+    stiffness_at: tuple[torch.Tensor, torch.Tensor]
+    loads_at: torch.Tensor  # f's entries: every beam's two joints' unknowns [B * 12], then every joint's [J * 6]
     kept: torch.Tensor  # [..., G, n, n] free_i free_j: K's rows and columns of the solved unknowns
     eliminated: torch.Tensor  # [..., G, n, n] diag(1 - free): the identity on the held and padding unknowns
 
@@ -161,10 +158,10 @@ def layout(g: GraphIndex, fixed: torch.Tensor) -> Layout:
     joint_blocks = design[:, None, None, None] * n * n + own[:, :, :, None] * n + own[:, :, None, :]  # [J, 2, 3, 3]
     held = (1.0 - fixed.double())[..., None].expand(*fixed.shape, 6).reshape(*fixed.shape[:-1], -1)
     free = torch.zeros(*fixed.shape[:-1], G * n, dtype=torch.float64).index_add(-1, joint_dof.reshape(-1), held)
-    joint_dof, beam_dof, pairs = joint_dof.reshape(-1), beam_dof.reshape(-1), pairs.reshape(-1)
-    diagonal, joint_blocks, free = diagonal.reshape(-1), joint_blocks.reshape(-1), free.unflatten(-1, (G, n))
-    return Layout((a, c), joint_dof, beam_dof, pairs, diagonal, joint_blocks, free, G, n,
-                  (torch.cat([pairs, diagonal]), torch.cat([pairs, joint_blocks])), torch.cat([beam_dof, joint_dof]),
+    joint_dof, pairs, free = joint_dof.reshape(-1), pairs.reshape(-1), free.unflatten(-1, (G, n))
+    return Layout((a, c), joint_dof, free, G, n,
+                  (torch.cat([pairs, diagonal.reshape(-1)]), torch.cat([pairs, joint_blocks.reshape(-1)])),
+                  torch.cat([beam_dof.reshape(-1), joint_dof]),
                   free[..., :, None] * free[..., None, :], torch.diag_embed(1.0 - free))
 
 

@@ -385,7 +385,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
                         summary=summary or {}, **averaged)
 
     epoch = start - 1
-    stop_reason = "epochs"
+    stop_reason, diverged = "epochs", False
     for epoch in range(start, int(cfg.epochs)):
         losses = train_epoch(model, opt, train_set, cfg, epoch, average)
         row = {"epoch": epoch, "lr": learning_rate(cfg, epoch), "train_loss": float(np.mean(losses)),
@@ -393,12 +393,13 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
                "seconds": time.perf_counter() - t0}
         history.append(row)
         if not all(math.isfinite(row[k]) for k in ("train_loss", "val_loss", cfg.monitor)):
-            kept = ("last.pt and best.pt keep the best finite epoch's weights" if (run_dir / BEST).exists() else
+            diverged = True
+            kept = ("last.pt and best.pt keep the best finite epoch's weights" if math.isfinite(best) else
                     "no finite epoch: nothing saved")
             stop_reason = (f"diverged at epoch {epoch}: non-finite loss (train {row['train_loss']:.3g}, val "
                            f"{row['val_loss']:.3g}); {kept}")
             log.error("%s", stop_reason)
-            if (run_dir / BEST).exists():  # never leave non-finite weights as the run's answer
+            if math.isfinite(best):  # best.pt holds it: never leave non-finite weights as the run's answer
                 restored = checkpoint.load(run_dir / BEST)
                 answer.load_state_dict(restored["state_dict"])
                 model.load_state_dict(restored.get("trained_state_dict", restored["state_dict"]))
@@ -434,7 +435,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
                "pca_dims": " ".join(f"{t}={p.k}" for t, p in model.pca.items())}
     # a time limit is an interruption, not an end: re-run with a larger time_limit_min to continue
     finished = not stop_reason.startswith("time limit")
-    if not stop_reason.startswith("diverged") or (run_dir / BEST).exists():  # no non-finite weights are saved
+    if not diverged or math.isfinite(best):  # no non-finite weights are saved
         save(last, epoch, finished=finished, summary=summary)
     log.info("%s (%s): %s", "done" if finished else "paused, resumable", stop_reason, summary)
     if cfg.get("results_csv"):
