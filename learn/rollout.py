@@ -8,8 +8,9 @@ import numpy as np
 import torch
 
 from learn.ensemble import Ensemble, members_of, stack_mean
-from learn.features import EpisodeFeatures, beams_along_i, extract, rebuild_all_points, welded
-from learn.graph import BEAM, JOINT, GraphIndex
+from learn.features import (BEAM_POINTS, JOINT_POINTS, EpisodeFeatures, beams_along_i, extract,
+                            rebuild_all_points, welded)
+from learn.graph import BEAM, JOINT, GraphIndex, disjoint_union
 from learn.model import Simulator, Static, static_from
 from learn.symmetry import (LATTICE_QUARTER_TURNS, lattice_matrices, rotation_angles, rotation_z, state_mirror,
                             state_rotation, term_mirror, term_rotation)
@@ -119,29 +120,80 @@ def answer_unroll(model: Simulator, joint_state: torch.Tensor, beam_state: torch
 
 
 class _Unroll(torch.nn.Module):
-    """unroll + rebuild_all_points with the graph passed as tensors, so one trace serves every graph size."""
+    """unroll + rebuild_all_points with the graph passed as tensors, so one trace serves every graph size. With
+    n_graphs, the graph is a disjoint union of that many designs (graph_inputs of a list) and the two extra inputs
+    say which design each joint and beam belongs to."""
 
-    def __init__(self, model: Simulator):
+    def __init__(self, model: Simulator, n_graphs: int | None = None):
         super().__init__()
         self.model = model
+        self.n_graphs = n_graphs
 
-    def forward(self, joint_state, beam_state, joint_bc, beam_bc, senders, receivers, edge_beam, t):
-        index = GraphIndex(senders, receivers, edge_beam, joint_state.shape[-2], beam_state.shape[-2])
+    def forward(self, joint_state, beam_state, joint_bc, beam_bc, senders, receivers, edge_beam, t, joint_graph=None,
+                beam_graph=None):
+        index = GraphIndex(senders, receivers, edge_beam, joint_state.shape[-2], beam_state.shape[-2], joint_graph,
+                           beam_graph, self.n_graphs or 1)
         js, bs = answer_unroll(self.model, joint_state, beam_state, Static(joint_bc, beam_bc, index), t)
         return js, bs, rebuild_all_points(js, bs)
 
 
-def graph_inputs(f: EpisodeFeatures) -> tuple[torch.Tensor, ...]:
-    """The positional inputs of a compiled rollout for one design (frame 0 and the frame times)."""
-    s = static_from(f.joint_bc, f.beam_bc, f.incidence)
-    return (torch.as_tensor(f.joint_state[0]), torch.as_tensor(f.beam_state[0]), s.joint_bc, s.beam_bc,
-            s.index.senders, s.index.receivers, s.index.edge_beam, torch.as_tensor(f.t, dtype=torch.float32))
+@dataclass
+class Batch:
+    """Designs as one graph (a disjoint union; one design: its own graph) with the frame-0 states of all of them:
+    what a batched rollout advances in one pass, and where each design's joints and beams lie in it."""
+
+    features: list[EpisodeFeatures]
+    joint_state: torch.Tensor  # [J, JOINT.state_size] frame 0 of every design, design after design
+    beam_state: torch.Tensor  # [B, BEAM.state_size]
+    static: Static
+    joint_offsets: np.ndarray  # [n + 1]: design i's joints are rows joint_offsets[i]:joint_offsets[i + 1]
+    beam_offsets: np.ndarray  # [n + 1]
+
+    @classmethod
+    def of(cls, features: list[EpisodeFeatures]) -> "Batch":
+        if not features:
+            raise ValueError("a batched rollout needs at least one design")
+        if len(features) == 1:
+            f = features[0]
+            incidence = f.incidence
+            jo, bo = np.array([0, incidence.n_joints]), np.array([0, incidence.n_beams])
+        else:
+            incidence, jo, bo = disjoint_union([f.incidence for f in features])
+        static = static_from(np.concatenate([f.joint_bc for f in features]),
+                             np.concatenate([f.beam_bc for f in features]), incidence)
+        return cls(features, torch.as_tensor(np.concatenate([f.joint_state[0] for f in features])),
+                   torch.as_tensor(np.concatenate([f.beam_state[0] for f in features])), static, jo, bo)
+
+    def part(self, x: torch.Tensor, i: int, block) -> torch.Tensor:
+        """[..., N, D] rows of the whole batch -> design i's rows (block JOINT or BEAM)."""
+        o = self.joint_offsets if block is JOINT else self.beam_offsets
+        return x[..., int(o[i]):int(o[i + 1]), :]
+
+    def points_of(self, points: torch.Tensor, i: int) -> torch.Tensor:
+        """[..., P, 3] rebuild_all_points of the whole batch (every joint's points, then every beam's) -> design i's,
+        in its point_nodes order."""
+        pj, pb = len(JOINT_POINTS), len(BEAM_POINTS)
+        jo, bo, beams_from = self.joint_offsets, self.beam_offsets, int(self.joint_offsets[-1]) * pj
+        return torch.cat([points[..., int(jo[i]) * pj:int(jo[i + 1]) * pj, :],
+                          points[..., beams_from + int(bo[i]) * pb:beams_from + int(bo[i + 1]) * pb, :]], -2)
 
 
-def _trace(model: Simulator, inputs: tuple[torch.Tensor, ...]) -> torch.jit.ScriptModule:
+def graph_inputs(f: EpisodeFeatures | list[EpisodeFeatures]) -> tuple[torch.Tensor, ...]:
+    """The positional inputs of a compiled rollout: of one design (frame 0 and the frame times), or of a list of
+    designs as one disjoint union (then also which design every joint and beam belongs to). The designs of a list
+    share their frame times (the first's are used)."""
+    designs = f if isinstance(f, list) else [f]
+    b = Batch.of(designs)
+    g = b.static.index
+    inputs = (b.joint_state, b.beam_state, b.static.joint_bc, b.static.beam_bc, g.senders, g.receivers, g.edge_beam,
+              torch.as_tensor(designs[0].t, dtype=torch.float32))
+    return inputs + ((g.joint_graph, g.beam_graph) if isinstance(f, list) else ())
+
+
+def _trace(model: Simulator, inputs: tuple[torch.Tensor, ...], n_graphs: int | None) -> torch.jit.ScriptModule:
     with torch.inference_mode(False), torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore", torch.jit.TracerWarning)  # the step count and constant matrices are meant
-        traced = torch.jit.trace(_Unroll(model.eval()), inputs, check_trace=False)
+        traced = torch.jit.trace(_Unroll(model.eval(), n_graphs), inputs, check_trace=False)
         return torch.jit.optimize_for_inference(torch.jit.freeze(traced.eval()))
 
 
@@ -150,25 +202,36 @@ class CompiledRollout:
     eager rollout, a fraction of the Python overhead per step, as many steps as the traced example has frames - 1.
     An additive model has one trace that serves every graph; a kinematic model's placement order (learn/kinematics.py)
     is baked into its trace, so it keeps one per graph (incidence and fixed joint), traced on first use; a stiffness
-    model's linear system has the graph's size baked in, so it keeps one per size (joints, beams)."""
+    model's linear system has the graph's size baked in, so it keeps one per size (joints, beams). Called with the
+    inputs of a list of designs (graph_inputs), it rolls them out as one disjoint union: one pass of the network for
+    all of them, each union's design count and size traced in (one trace per count and size)."""
 
     def __init__(self, model: Simulator, example: EpisodeFeatures):
         self.model = model
         self.traces: dict = {}
         self(*graph_inputs(example))
 
+    @staticmethod
+    def n_graphs(inputs: tuple[torch.Tensor, ...]) -> int | None:
+        """Designs in a union's inputs (graph_inputs of a list); None for one design's."""
+        return int(inputs[8][-1]) + 1 if len(inputs) > 8 else None
+
     def key(self, inputs: tuple[torch.Tensor, ...]):
-        if not self.model.kinematic:  # a stiffness model's solve and the beams' spans have the graph's size traced in
-            sized = self.model.stiffness or self.model.span_input
-            return tuple(inputs[0].shape[-2:]) + tuple(inputs[1].shape[-2:]) if sized else None
-        joint_bc, senders, receivers, edge_beam = inputs[2], inputs[4], inputs[5], inputs[6]
-        fixed = joint_bc[:, JOINT.bc.slice("fixed")]
-        return tuple(tuple(x.reshape(-1).tolist()) for x in (senders, receivers, edge_beam, fixed))
+        n = self.n_graphs(inputs)
+        union = () if n is None else ("union", n)  # a union's design count is traced in
+        if self.model.kinematic:  # its placement order is traced in: one trace per graph
+            joint_bc, senders, receivers, edge_beam = inputs[2], inputs[4], inputs[5], inputs[6]
+            fixed = joint_bc[:, JOINT.bc.slice("fixed")]
+            return union + tuple(tuple(x.reshape(-1).tolist()) for x in (senders, receivers, edge_beam, fixed))
+        # a stiffness model's solve, the beams' spans and a union's design slots have the graph's size traced in
+        if n is not None or self.model.stiffness or self.model.span_input:
+            return union + tuple(inputs[0].shape[-2:]) + tuple(inputs[1].shape[-2:])
+        return None
 
     def __call__(self, *inputs: torch.Tensor):
         key = self.key(inputs)
         if key not in self.traces:
-            self.traces[key] = _trace(self.model, inputs)
+            self.traces[key] = _trace(self.model, inputs, self.n_graphs(inputs))
         return self.traces[key](*inputs)
 
 
@@ -218,24 +281,46 @@ def as_features(source) -> EpisodeFeatures:
 def rollout(model: Simulator, source, steps: int = 10, t: np.ndarray | None = None) -> Rollout:
     """Run `steps` steps from frame 0 of `source` (an Episode or its EpisodeFeatures; only frame 0 is used).
     Frame times: `t` if given, else the source's own when it has steps + 1 frames, else evenly spaced in [0, 1]."""
-    f = as_features(source)
+    return rollout_many(model, [source], steps, t)[0]
+
+
+def frame_times(features: list[EpisodeFeatures], steps: int, t: np.ndarray | None) -> np.ndarray:
+    """The frame times of a rollout of `features`: `t` if given, else each design's own when it has steps + 1
+    frames and evenly spaced in [0, 1] when not, which must then be the same for all of them."""
     if t is None:
-        t = f.t if len(f.t) == steps + 1 else np.linspace(0.0, 1.0, steps + 1)
-    t = np.asarray(t, dtype=np.float64)
-    static = static_from(f.joint_bc, f.beam_bc, f.incidence)
-    inputs = (torch.as_tensor(f.joint_state[0]), torch.as_tensor(f.beam_state[0]), static,
-              torch.as_tensor(t, dtype=torch.float32))
-    member_points = None
+        each = [f.t if len(f.t) == steps + 1 else np.linspace(0.0, 1.0, steps + 1) for f in features]
+        if any(not np.allclose(x, each[0]) for x in each):
+            raise ValueError("the designs' frame times differ: give t, or roll them out apart")
+        t = each[0]
+    return np.asarray(t, dtype=np.float64)
+
+
+def rollout_many(model: Simulator, sources: list, steps: int = 10, t: np.ndarray | None = None) -> list[Rollout]:
+    """rollout of every source, all designs advanced together as one disjoint union (Batch): one network pass per
+    step for the lot, so the fixed cost of a step's few hundred small operations is shared (what a design search
+    that scores many candidates pays per design); each answer is the one its design gets alone, up to rounding.
+    Frame times: frame_times."""
+    features = [as_features(s) for s in sources]
+    b = Batch.of(features)
+    t = frame_times(features, steps, t)
+    inputs = (b.joint_state, b.beam_state, b.static, torch.as_tensor(t, dtype=torch.float32))
+    members = None
     with torch.inference_mode():
         if isinstance(model, Ensemble):  # the members' answers, kept for their spread; the answer is their mean
             members = [answer_unroll(m, *inputs) for m in model.members]
-            member_points = torch.stack([rebuild_all_points(*m) for m in members]).numpy() + f.origin
             js, bs = stack_mean(members)
         else:
             js, bs = answer_unroll(model, *inputs)
-        pts = rebuild_all_points(js, bs)
-    return Rollout(t=t, joint_states=js.numpy(), beam_states=bs.numpy(), points=pts.numpy() + f.origin,
-                   point_nodes=f.point_nodes, origin=f.origin, features=f, member_points=member_points)
+    out = []
+    for i, f in enumerate(features):
+        own = lambda j, s: (b.part(j, i, JOINT), b.part(s, i, BEAM))  # noqa: E731
+        member_points = None if members is None else \
+            torch.stack([rebuild_all_points(*own(*m)) for m in members]).numpy() + f.origin
+        ji, bi = own(js, bs)
+        out.append(Rollout(t=t, joint_states=ji.numpy(), beam_states=bi.numpy(),
+                           points=rebuild_all_points(ji, bi).numpy() + f.origin, point_nodes=f.point_nodes,
+                           origin=f.origin, features=f, member_points=member_points))
+    return out
 
 
 def reference(source) -> Rollout:
