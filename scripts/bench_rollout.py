@@ -1,10 +1,13 @@
-"""Learned rollout wall time vs symmetry copies: `make bench-rollout CKPT=...` -> reports/bench_rollout/.
+"""Learned rollout wall time vs symmetry copies and batch size: `make bench-rollout CKPT=...` -> reports/bench_rollout/.
 
 --checkpoint a.pt,b.pt times an ensemble (learn.ensemble: every member with the setting's copies).
 Per setting (rotations x mirror x lattice labellings, learn.rollout.answer_unroll): the TorchScript-compiled rollout
 of one design from frame 0 to the rebuilt points of every frame, on one thread; the median over designs (the
-checkpoint's test split) of the median of --repeats calls (learn.evaluate.median_seconds). Writes rollout.csv,
-rollout.md (machine, load, command) and rollout.png (ms vs copies, the 5 ms target). Run it on an idle machine.
+checkpoint's test split) of the median of --repeats calls (learn.evaluate.median_seconds): the latency of one answer.
+With --batch 8,32,...: also the rollout of that many designs at once (learn.rollout.rollout_many's disjoint union, the
+test designs taken in turn), its median call time divided by the count: the cost per design of scoring many candidates.
+Writes rollout.csv, rollout.md (machine, load, command) and rollout.png (ms vs copies and vs batch size, the 5 ms
+target). Run it on an idle machine.
 """
 from __future__ import annotations
 
@@ -51,6 +54,8 @@ def main() -> None:
     p.add_argument("--repeats", type=int, default=30)
     p.add_argument("--settings", help="<rotations>:<mirror>[:<lattice turns>], comma-separated",
                    default="1:false,2:false,4:false,1:true,2:true,4:true,8:true,1:false:2,1:false:4,1:true:4")
+    p.add_argument("--batch", default="", help="designs per call beside the one-design latency, comma-separated "
+                   "(e.g. 8,32,128)")
     p.add_argument("--out", default="reports/bench_rollout")
     a = p.parse_args()
     torch.set_num_threads(1)
@@ -63,15 +68,24 @@ def main() -> None:
         raise SystemExit(f"{a.checkpoint} has no test split to time")
     features = load_features([data_dir / n for n in names])
     load_before = "/".join(f"{x:.2f}" for x in os.getloadavg())
+    batches = [int(x) for x in a.batch.split(",") if x.strip()]
+    if any(b < 2 for b in batches):
+        raise SystemExit(f"--batch {a.batch}: every count must be >= 2 (1, one design, is always timed)")
     rows = []
     for n, mirror, turns in settings(a.settings):
         compiled = compile_rollout(model.answer_with(n, mirror, turns), features[0])
         ms = [1e3 * median_seconds(lambda f=f: compiled(*graph_inputs(f)), a.repeats) for f in features]
-        rows.append({"members": members, "rotations": n, "mirror": mirror, "lattice_turns": turns,
-                     "copies": members * n * (2 if mirror else 1) * turns,
-                     "ms_per_design": float(np.median(ms)), "ms_min": float(np.min(ms)), "ms_max": float(np.max(ms))})
-        print(f"rotations {n} mirror {mirror} lattice turns {turns}: {rows[-1]['ms_per_design']:.2f} ms/design",
-              flush=True)
+        row = {"members": members, "rotations": n, "mirror": mirror, "lattice_turns": turns,
+               "copies": members * n * (2 if mirror else 1) * turns}
+        rows.append({**row, "batch": 1, "ms_per_design": float(np.median(ms)), "ms_min": float(np.min(ms)),
+                     "ms_max": float(np.max(ms))})
+        for b in batches:
+            inputs = graph_inputs([features[i % len(features)] for i in range(b)])
+            per_design = 1e3 * median_seconds(lambda: compiled(*inputs), max(3, a.repeats // 4)) / b
+            rows.append({**row, "batch": b, "ms_per_design": per_design, "ms_min": per_design, "ms_max": per_design})
+        for r in rows[-1 - len(batches):]:
+            print(f"rotations {n} mirror {mirror} lattice turns {turns} batch {r['batch']}: "
+                  f"{r['ms_per_design']:.2f} ms/design", flush=True)
     load_after = "/".join(f"{x:.2f}" for x in os.getloadavg())
 
     out = Path(a.out)
@@ -80,13 +94,14 @@ def main() -> None:
     lines = [f"# Learned rollout time vs symmetry copies ({a.checkpoint})", "",
              f"Machine: {machine()}; 1 torch thread; load average before/after {load_before} / {load_after}.",
              f"Command: `{' '.join([Path(sys.executable).name, *sys.argv])}`; {len(features)} test designs, "
-             f"median of {a.repeats} calls each, then the median over designs.", "",
-             "| members | rotations | mirror | lattice turns | copies | ms per design (median) "
+             f"median of {a.repeats} calls each, then the median over designs (batch 1); batch b > 1: one call rolls "
+             f"b designs out together, the median of {max(3, a.repeats // 4)} calls / b.", "",
+             "| members | rotations | mirror | lattice turns | copies | batch | ms per design (median) "
              "| min / max over designs |",
-             "|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|"]
     lines += [f"| {r['members']} | {r['rotations']} | {r['mirror']} | {r['lattice_turns']} | {r['copies']} | "
-              f"{r['ms_per_design']:.2f} | "
-              f"{r['ms_min']:.2f} / {r['ms_max']:.2f} |" for r in rows]
+              f"{r['batch']} | {r['ms_per_design']:.2f} | "
+              + (f"{r['ms_min']:.2f} / {r['ms_max']:.2f} |" if r["batch"] == 1 else "|") for r in rows]
     atomic.write_text(out / "rollout.md", "\n".join(lines) + "\n")
 
     import matplotlib
@@ -94,16 +109,29 @@ def main() -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for (mirror, turns), marker in zip(sorted({(r["mirror"], r["lattice_turns"]) for r in rows}), "osD^v<>p"):
-        sel = [r for r in rows if (r["mirror"], r["lattice_turns"]) == (mirror, turns)]
+    single = [r for r in rows if r["batch"] == 1]
+    fig, axes = plt.subplots(1, 2 if batches else 1, figsize=(11 if batches else 6, 4), squeeze=False)
+    ax = axes[0, 0]
+    for (mirror, turns), marker in zip(sorted({(r["mirror"], r["lattice_turns"]) for r in single}), "osD^v<>p"):
+        sel = [r for r in single if (r["mirror"], r["lattice_turns"]) == (mirror, turns)]
         label = "rotations" + (" + mirror" if mirror else "") + (f" x {turns} labellings" if turns > 1 else "")
         ax.plot([r["copies"] for r in sel], [r["ms_per_design"] for r in sel], marker + "-", label=label)
     ax.axhline(TARGET_MS, color="k", ls="--", lw=0.8, label=f"target {TARGET_MS:g} ms")
     ax.set(xlabel="copies averaged per answer", ylabel="rollout ms per design (1 thread)",
-           title="learned rollout cost of symmetry averaging")
+           title="one design: cost of symmetry averaging")
     ax.grid(alpha=0.3)
     ax.legend()
+    if batches:
+        ax = axes[0, 1]
+        for key in dict.fromkeys((r["rotations"], r["mirror"], r["lattice_turns"]) for r in rows):
+            sel = [r for r in rows if (r["rotations"], r["mirror"], r["lattice_turns"]) == key]
+            ax.plot([r["batch"] for r in sel], [r["ms_per_design"] for r in sel], "o-",
+                    label=f"{sel[0]['copies']} cop{'y' if sel[0]['copies'] == 1 else 'ies'}")
+        ax.axhline(TARGET_MS, color="k", ls="--", lw=0.8, label=f"target {TARGET_MS:g} ms")
+        ax.set(xscale="log", yscale="log", xlabel="designs per call (one disjoint union)",
+               ylabel="rollout ms per design (1 thread)", title="many designs at once")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend()
     fig.tight_layout()
     fig.savefig(out / "rollout.png", dpi=110)
     plt.close(fig)

@@ -105,16 +105,21 @@ def test_bench_rollout_writes_a_row_per_setting_and_refuses_a_bad_one(trained, d
     run_dir, _ = trained
     base = [sys.executable, str(ROOT / "scripts" / "bench_rollout.py"), "--checkpoint", str(run_dir / "best.pt"),
             "--data-dir", str(data_dir), "--designs", "1", "--repeats", "1", "--out", str(tmp_path / "b")]
-    r = subprocess.run(base + ["--settings", "1:false,2:true,1:false:4"], capture_output=True, text=True, timeout=600)
+    r = subprocess.run(base + ["--settings", "1:false,2:true,1:false:4", "--batch", "3"], capture_output=True,
+                       text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     rows = (tmp_path / "b" / "rollout.csv").read_text().splitlines()
-    assert rows[0].startswith("members,rotations,mirror,lattice_turns,copies,ms_per_design") and len(rows) == 4
-    assert rows[2].startswith("1,2,True,1,4,") and rows[3].startswith("1,1,False,4,4,")
+    assert rows[0].startswith("members,rotations,mirror,lattice_turns,copies,batch,ms_per_design") and len(rows) == 7
+    assert rows[3].startswith("1,2,True,1,4,1,") and rows[4].startswith("1,2,True,1,4,3,")
+    assert rows[5].startswith("1,1,False,4,4,1,") and rows[6].startswith("1,1,False,4,4,3,")
+    assert all(float(row.split(",")[6]) > 0 for row in rows[1:])
     assert (tmp_path / "b" / "rollout.png").stat().st_size > 0
     assert "Machine:" in (tmp_path / "b" / "rollout.md").read_text()
     for setting in ("0:false", "1:false:3", "1"):
         bad = subprocess.run(base + ["--settings", setting], capture_output=True, text=True, timeout=600)
         assert bad.returncode != 0 and "--settings" in bad.stderr
+    bad = subprocess.run(base + ["--settings", "1:false", "--batch", "1"], capture_output=True, text=True, timeout=600)
+    assert bad.returncode != 0 and "--batch 1: every count must be >= 2" in bad.stderr
 
 
 def test_first_step_probe_writes_a_row_and_refuses_a_bad_frame_count(trained, data_dir, tmp_path):  # noqa: F811
