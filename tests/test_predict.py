@@ -101,6 +101,33 @@ def test_predict_writes_view_verdict_and_error_like_the_rollout(trained, data_di
                                            f"out_dir={tmp_path / 'bad'}"]))
 
 
+def test_predict_many_designs_in_one_pass_writes_each_as_alone(trained, data_dir, tmp_path):  # noqa: F811
+    """episode=DIR or a list: every design rolled out together (rollout_many), each one's outputs in its own directory
+    with the verdict and error it gets alone, and a table with a row per design."""
+    run_dir, _ = trained
+    names = sorted(p.name for p in data_dir.glob("*.h5"))[:2]
+    for name in names:
+        (tmp_path / "in").mkdir(exist_ok=True)
+        (tmp_path / "in" / name).symlink_to(data_dir / name)
+    base = [f"checkpoint={run_dir / 'best.pt'}", "threads=1", "plots=false"]
+    many = predict(cfg_for("predict", base + [f"episode={tmp_path / 'in'}", f"out_dir={tmp_path / 'many'}"]))
+    assert [Path(r["episode"]).name for r in many] == names and many[0]["batch"] == 2
+    for name, result in zip(names, many):
+        alone = predict(cfg_for("predict", base + [f"episode={data_dir / name}", f"out_dir={tmp_path / name}"]))
+        assert result["max_rel_error"] == pytest.approx(alone["max_rel_error"], rel=1e-4)
+        assert result["valid"] == alone["valid"]
+        assert (tmp_path / "many" / Path(name).stem / "prediction.view.xdmf").is_file()
+    rows = (tmp_path / "many" / "predictions.csv").read_text().splitlines()
+    assert rows[0].startswith("episode,valid,max_rel_error") and len(rows) == 3
+    listed = predict(cfg_for("predict", base + [f"episode=[{data_dir / names[1]}]", f"out_dir={tmp_path / 'l'}"]))
+    assert len(listed) == 1 and listed[0]["max_rel_error"] == pytest.approx(many[1]["max_rel_error"], rel=1e-4)
+    with pytest.raises(FileNotFoundError, match="episode: .*nothing.h5'] not found"):
+        predict(cfg_for("predict", base + [f"episode={tmp_path / 'nothing.h5'}", f"out_dir={tmp_path / 'x'}"]))
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ValueError, match="no episode files"):
+        predict(cfg_for("predict", base + [f"episode={tmp_path / 'empty'}", f"out_dir={tmp_path / 'x'}"]))
+
+
 def test_bench_rollout_writes_a_row_per_setting_and_refuses_a_bad_one(trained, data_dir, tmp_path):  # noqa: F811
     run_dir, _ = trained
     base = [sys.executable, str(ROOT / "scripts" / "bench_rollout.py"), "--checkpoint", str(run_dir / "best.pt"),
