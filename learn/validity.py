@@ -95,21 +95,33 @@ def out_of_range(model: Simulator | Ensemble, r: Rollout, margin: float) -> np.n
     return torch.cat([joint_bad, beam_bad], 1).float().mean(1).numpy()
 
 
+def judging_frame(frames) -> str:
+    """The section of conf/validity whose thresholds judge a model whose members read their blocks in `frames`: a
+    rotated frame's (local, fixed) when any member reads in it, as an ensemble's out-of-range share counts a block
+    outside any member's range; else "global", the top level. Members in two rotated frames are refused."""
+    rotated = sorted(set(frames) - {"global"})
+    if len(rotated) > 1:
+        raise ValueError(f"the model's members read their blocks in frames {rotated}: no one section of thresholds "
+                         "judges them; check or calibrate each apart")
+    return rotated[0] if rotated else "global"
+
+
 def thresholds(validity: dict, model: Simulator | Ensemble) -> dict:
     """The keyword arguments of `check` for `model` from conf/validity: its top-level thresholds, overridden by those
-    under the model's frame (`local:`; an ensemble with any member in that frame takes them, as its out-of-range
-    share counts a block outside any member's range). The out-of-range share is read against the model's own
-    training ranges, which a model reading each block in its own frame has narrower, so its calibration differs."""
+    under the model's frame (judging_frame: `local:` for a model, or an ensemble with any member, in that frame).
+    The out-of-range share is read against the model's own training ranges, which a model reading each block in its
+    own frame has narrower, so its calibration differs."""
     base = {k: v for k, v in validity.items() if not isinstance(v, dict)}
-    frames = {m.args.get("frame", "global") for m in members_of(model)}
     for frame, overrides in validity.items():
         if isinstance(overrides, dict) and frame not in FRAMES:
             raise ValueError(f"validity.{frame}: not a model frame; allowed: {list(FRAMES)}")
-        if isinstance(overrides, dict) and frame in frames:
-            unknown = set(overrides) - set(base)
-            if unknown:
-                raise ValueError(f"validity.{frame}: unknown thresholds {sorted(unknown)}; allowed: {sorted(base)}")
-            base.update(overrides)
+    frame = judging_frame(m.args.get("frame", "global") for m in members_of(model))
+    overrides = validity.get(frame)
+    if isinstance(overrides, dict):
+        unknown = set(overrides) - set(base)
+        if unknown:
+            raise ValueError(f"validity.{frame}: unknown thresholds {sorted(unknown)}; allowed: {sorted(base)}")
+        base.update(overrides)
     return base
 
 

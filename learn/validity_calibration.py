@@ -27,6 +27,7 @@ from data_schema import atomic
 from learn.combine import read_report
 from learn.evaluate import (_pct, finite_or_null, flag_error_rel_checked, flag_outcome, rank_correlation,
                             validity_indicators)
+from learn.validity import judging_frame
 
 log = logging.getLogger(__name__)
 # the indicators that judge every single model's rollout, and their thresholds' names in conf/validity/default.yaml
@@ -103,12 +104,8 @@ def calibrate(reports: list[dict], error_rel: float | None = None, check: list[d
 
 def model_frame(model: dict) -> str:
     """The section of conf/validity/default.yaml whose thresholds judge the model a report describes (its `model`
-    args; an ensemble's `member_args` when they differ): a rotated frame's own section when any member reads its
-    blocks in one (learn.validity.thresholds), else the top level ("global")."""
-    rotated = sorted({a.get("frame", "global") for a in model.get("member_args", [model])} - {"global"})
-    if len(rotated) > 1:
-        raise ValueError(f"reports: the model's members read their blocks in frames {rotated}; calibrate each apart")
-    return rotated[0] if rotated else "global"
+    args; an ensemble's `member_args` when they differ): learn.validity.judging_frame of its members' frames."""
+    return judging_frame(a.get("frame", "global") for a in model.get("member_args", [model]))
 
 
 def same_frame(reports: list[dict]) -> str:

@@ -134,6 +134,14 @@ def test_a_model_in_local_frames_is_judged_by_the_thresholds_calibrated_for_that
         thresholds({**conf, "local": {"max_out_of_rang": 0.5}}, models["local"])
     with pytest.raises(ValueError, match="validity.locl: not a model frame"):
         thresholds({**conf, "locl": {"max_out_of_range": 0.5}}, models["global"])
+    fixed = Simulator.fit({"core": "double_gn", "latent": 4, "widths": [8], "frame": "fixed"}, data.joint_state,
+                          data.beam_state, data.static)
+    with pytest.raises(ValueError, match=r"frames \['fixed', 'local'\]: no one section"):  # the same rule as reports'
+        thresholds(conf, Ensemble([models["local"], fixed]))
+    from learn.validity_calibration import model_frame
+    with pytest.raises(ValueError, match=r"frames \['fixed', 'local'\]: no one section"):
+        model_frame({"member_args": [{"frame": "local"}, {"frame": "fixed"}, {"frame": "global"}]})
+    assert model_frame({"member_args": [{"frame": "local"}, {}]}) == "local" and model_frame({}) == "global"
 
 
 def test_an_answer_of_a_one_kind_design_that_has_not_rolled_is_the_unrolled_indicator():
