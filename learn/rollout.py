@@ -187,7 +187,11 @@ def graph_inputs(f: EpisodeFeatures | list[EpisodeFeatures]) -> tuple[torch.Tens
     g = b.static.index
     inputs = (b.joint_state, b.beam_state, b.static.joint_bc, b.static.beam_bc, g.senders, g.receivers, g.edge_beam,
               torch.as_tensor(designs[0].t, dtype=torch.float32))
-    return inputs + ((g.joint_graph, g.beam_graph) if isinstance(f, list) else ())
+    if not isinstance(f, list):
+        return inputs
+    if g.joint_graph is None:  # a list of one design: a union of one
+        return inputs + (torch.zeros(g.n_joints, dtype=torch.long), torch.zeros(g.n_beams, dtype=torch.long))
+    return inputs + (g.joint_graph, g.beam_graph)
 
 
 def _trace(model: Simulator, inputs: tuple[torch.Tensor, ...], n_graphs: int | None) -> torch.jit.ScriptModule:

@@ -77,7 +77,9 @@ def test_a_compiled_union_gives_each_design_its_compiled_answer_alone(features):
         two = compiled(*graph_inputs(features[:2]))[2]
         torch.testing.assert_close(Batch.of(features[:2]).points_of(two, 1), batch.points_of(points, 1), atol=tol,
                                    rtol=0)
-    assert len(compiled.traces) == 2 + len({(f.incidence.n_joints, f.incidence.n_beams) for f in features})
+        one = compiled(*graph_inputs(features[:1]))[2]  # a list of one design: a union of one
+        torch.testing.assert_close(one, compiled(*graph_inputs(features[0]))[2], atol=tol, rtol=0)
+    assert len(compiled.traces) == 3 + len({(f.incidence.n_joints, f.incidence.n_beams) for f in features})
 
 
 def test_an_ensemble_rolled_out_together_keeps_each_members_answer_per_design(features):
