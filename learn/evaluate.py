@@ -192,11 +192,15 @@ def timings(model: Simulator, features: list[EpisodeFeatures], repeats: int) -> 
     compiled = compile_rollout(model, features[0])
     compile_s = time.perf_counter() - start
     with torch.inference_mode():
-        for f in features:  # the compiled rollout must give the eager numbers
+        for f in features:  # the compiled rollout must give the eager numbers, to float32 rounding grown over the
+            # steps: 1e-4 of the design size (0.02 mm at 200 mm, ~100x below the best answers' errors; a wide model
+            # on a bifurcating design reached 2e-5, session 34), far below what a compile fault does
             got = compiled(*graph_inputs(f))[2].numpy()
             want = eager_rollout(model, f)().numpy()
-            if not np.allclose(got, want, atol=1e-3 + 1e-5 * np.abs(want).max()):
-                raise RuntimeError(f"compiled rollout differs from eager on {f.name}")
+            gap = float(np.abs(got - want).max())
+            if not gap <= 1e-4 * f.design_size:
+                raise RuntimeError(f"compiled rollout differs from eager on {f.name}: {gap:.3g} mm, more than 1e-4 "
+                                   f"of its {f.design_size:.0f} mm size")
         together = graph_inputs(features)  # every design as one disjoint union (learn.rollout.rollout_many)
         compiled(*together)  # traced here, outside the timing
     return {

@@ -182,16 +182,16 @@ def graph_inputs(f: EpisodeFeatures | list[EpisodeFeatures]) -> tuple[torch.Tens
     """The positional inputs of a compiled rollout: of one design (frame 0 and the frame times), or of a list of
     designs as one disjoint union (then also which design every joint and beam belongs to). The designs of a list
     share their frame times (the first's are used)."""
-    designs = f if isinstance(f, list) else [f]
-    b = Batch.of(designs)
-    g = b.static.index
-    inputs = (b.joint_state, b.beam_state, b.static.joint_bc, b.static.beam_bc, g.senders, g.receivers, g.edge_beam,
-              torch.as_tensor(designs[0].t, dtype=torch.float32))
     if not isinstance(f, list):
-        return inputs
-    if g.joint_graph is None:  # a list of one design: a union of one
-        return inputs + (torch.zeros(g.n_joints, dtype=torch.long), torch.zeros(g.n_beams, dtype=torch.long))
-    return inputs + (g.joint_graph, g.beam_graph)
+        s = static_from(f.joint_bc, f.beam_bc, f.incidence)
+        return (torch.as_tensor(f.joint_state[0]), torch.as_tensor(f.beam_state[0]), s.joint_bc, s.beam_bc,
+                s.index.senders, s.index.receivers, s.index.edge_beam, torch.as_tensor(f.t, dtype=torch.float32))
+    b = Batch.of(f)
+    g = b.static.index
+    member = (g.joint_graph, g.beam_graph) if g.joint_graph is not None else \
+        (torch.zeros(g.n_joints, dtype=torch.long), torch.zeros(g.n_beams, dtype=torch.long))  # a union of one
+    return (b.joint_state, b.beam_state, b.static.joint_bc, b.static.beam_bc, g.senders, g.receivers, g.edge_beam,
+            torch.as_tensor(f[0].t, dtype=torch.float32), *member)
 
 
 def _trace(model: Simulator, inputs: tuple[torch.Tensor, ...], n_graphs: int | None) -> torch.jit.ScriptModule:
