@@ -142,7 +142,6 @@ class Batch:
     """Designs as one graph (a disjoint union; one design: its own graph) with the frame-0 states of all of them:
     what a batched rollout advances in one pass, and where each design's joints and beams lie in it."""
 
-    features: list[EpisodeFeatures]
     joint_state: torch.Tensor  # [J, JOINT.state_size] frame 0 of every design, design after design
     beam_state: torch.Tensor  # [B, BEAM.state_size]
     static: Static
@@ -161,7 +160,7 @@ class Batch:
             incidence, jo, bo = disjoint_union([f.incidence for f in features])
         static = static_from(np.concatenate([f.joint_bc for f in features]),
                              np.concatenate([f.beam_bc for f in features]), incidence)
-        return cls(features, torch.as_tensor(np.concatenate([f.joint_state[0] for f in features])),
+        return cls(torch.as_tensor(np.concatenate([f.joint_state[0] for f in features])),
                    torch.as_tensor(np.concatenate([f.beam_state[0] for f in features])), static, jo, bo)
 
     def part(self, x: torch.Tensor, i: int, block) -> torch.Tensor:
