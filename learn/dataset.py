@@ -10,7 +10,7 @@ import torch
 
 from data_schema.episode import read_episode
 from learn import frames
-from learn.features import EpisodeFeatures, extract
+from learn.features import BEAM_POINTS, JOINT_POINTS, EpisodeFeatures, extract
 from learn.graph import BEAM, JOINT, GraphIndex, disjoint_union
 from learn.model import Static
 from learn.symmetry import rotation_angles, rotation_z
@@ -151,9 +151,29 @@ class GraphSet:
                                  inc.tensors()),
                    joint_offsets=jo, beam_offsets=bo)
 
+    @classmethod
+    def first_frames(cls, items: list[EpisodeFeatures]) -> "GraphSet":
+        """The set of the items' frame 0 only (whatever their frame times): what a rollout starts from."""
+        if not items:
+            raise ValueError("a graph set needs at least one design")
+        return cls.build([f.first_frame() for f in items])
+
     @property
     def index(self) -> GraphIndex:
         return self.static.index
+
+    def part(self, x: torch.Tensor, i: int, block) -> torch.Tensor:
+        """[..., N, D] rows of the whole set -> item i's rows (block JOINT or BEAM)."""
+        o = self.joint_offsets if block is JOINT else self.beam_offsets
+        return x[..., int(o[i]):int(o[i + 1]), :]
+
+    def points_of(self, points: torch.Tensor, i: int) -> torch.Tensor:
+        """[..., P, 3] rebuild_all_points of the whole set (every joint's points, then every beam's) -> item i's, in
+        its point_nodes order."""
+        pj, pb = len(JOINT_POINTS), len(BEAM_POINTS)
+        jo, bo, beams_from = self.joint_offsets, self.beam_offsets, int(self.joint_offsets[-1]) * pj
+        return torch.cat([points[..., int(jo[i]) * pj:int(jo[i + 1]) * pj, :],
+                          points[..., beams_from + int(bo[i]) * pb:beams_from + int(bo[i + 1]) * pb, :]], -2)
 
     def __len__(self) -> int:
         return len(self.items)

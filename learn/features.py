@@ -4,7 +4,7 @@ Node-index specs below address a block's node grid: 0 = first, "mid" = middle (n
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -102,6 +102,11 @@ class EpisodeFeatures:
         flags = np.stack([self.beam_bc[:, BEAM.bc.slice(f"kind_{k}")].ravel() for k in BEAM_KINDS], axis=1)
         kinds = {BEAM_KINDS[c] for c in flags.argmax(axis=1)}
         return f"all {kinds.pop()}" if len(kinds) == 1 else "mixed"
+
+    def first_frame(self) -> "EpisodeFeatures":
+        """The episode cut to its frame 0 (the design as printed): what a rollout starts from."""
+        return replace(self, t=self.t[:1], joint_state=self.joint_state[:1], beam_state=self.beam_state[:1],
+                       fea_points=self.fea_points[:1])
 
     def rotated(self, R: np.ndarray) -> "EpisodeFeatures":
         from learn.symmetry import rotate_term, rotate_vectors

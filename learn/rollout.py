@@ -8,9 +8,9 @@ import numpy as np
 import torch
 
 from learn.ensemble import Ensemble, members_of, stack_mean
-from learn.features import (BEAM_POINTS, JOINT_POINTS, EpisodeFeatures, beams_along_i, extract,
-                            rebuild_all_points, welded)
-from learn.graph import BEAM, JOINT, GraphIndex, disjoint_union
+from learn.dataset import GraphSet
+from learn.features import EpisodeFeatures, beams_along_i, extract, rebuild_all_points, welded
+from learn.graph import BEAM, JOINT, GraphIndex
 from learn.model import Simulator, Static, static_from
 from learn.symmetry import (LATTICE_QUARTER_TURNS, lattice_matrices, rotation_angles, rotation_z, state_mirror,
                             state_rotation, term_mirror, term_rotation)
@@ -137,46 +137,6 @@ class _Unroll(torch.nn.Module):
         return js, bs, rebuild_all_points(js, bs)
 
 
-@dataclass
-class Batch:
-    """Designs as one graph (a disjoint union; one design: its own graph) with the frame-0 states of all of them:
-    what a batched rollout advances in one pass, and where each design's joints and beams lie in it."""
-
-    joint_state: torch.Tensor  # [J, JOINT.state_size] frame 0 of every design, design after design
-    beam_state: torch.Tensor  # [B, BEAM.state_size]
-    static: Static
-    joint_offsets: np.ndarray  # [n + 1]: design i's joints are rows joint_offsets[i]:joint_offsets[i + 1]
-    beam_offsets: np.ndarray  # [n + 1]
-
-    @classmethod
-    def of(cls, features: list[EpisodeFeatures]) -> "Batch":
-        if not features:
-            raise ValueError("a batched rollout needs at least one design")
-        if len(features) == 1:
-            f = features[0]
-            incidence = f.incidence
-            jo, bo = np.array([0, incidence.n_joints]), np.array([0, incidence.n_beams])
-        else:
-            incidence, jo, bo = disjoint_union([f.incidence for f in features])
-        static = static_from(np.concatenate([f.joint_bc for f in features]),
-                             np.concatenate([f.beam_bc for f in features]), incidence)
-        return cls(torch.as_tensor(np.concatenate([f.joint_state[0] for f in features])),
-                   torch.as_tensor(np.concatenate([f.beam_state[0] for f in features])), static, jo, bo)
-
-    def part(self, x: torch.Tensor, i: int, block) -> torch.Tensor:
-        """[..., N, D] rows of the whole batch -> design i's rows (block JOINT or BEAM)."""
-        o = self.joint_offsets if block is JOINT else self.beam_offsets
-        return x[..., int(o[i]):int(o[i + 1]), :]
-
-    def points_of(self, points: torch.Tensor, i: int) -> torch.Tensor:
-        """[..., P, 3] rebuild_all_points of the whole batch (every joint's points, then every beam's) -> design i's,
-        in its point_nodes order."""
-        pj, pb = len(JOINT_POINTS), len(BEAM_POINTS)
-        jo, bo, beams_from = self.joint_offsets, self.beam_offsets, int(self.joint_offsets[-1]) * pj
-        return torch.cat([points[..., int(jo[i]) * pj:int(jo[i + 1]) * pj, :],
-                          points[..., beams_from + int(bo[i]) * pb:beams_from + int(bo[i + 1]) * pb, :]], -2)
-
-
 def graph_inputs(f: EpisodeFeatures | list[EpisodeFeatures]) -> tuple[torch.Tensor, ...]:
     """The positional inputs of a compiled rollout: of one design (frame 0 and the frame times), or of a list of
     designs as one disjoint union (then also which design every joint and beam belongs to). The designs of a list
@@ -185,12 +145,10 @@ def graph_inputs(f: EpisodeFeatures | list[EpisodeFeatures]) -> tuple[torch.Tens
         s = static_from(f.joint_bc, f.beam_bc, f.incidence)
         return (torch.as_tensor(f.joint_state[0]), torch.as_tensor(f.beam_state[0]), s.joint_bc, s.beam_bc,
                 s.index.senders, s.index.receivers, s.index.edge_beam, torch.as_tensor(f.t, dtype=torch.float32))
-    b = Batch.of(f)
-    g = b.static.index
-    member = (g.joint_graph, g.beam_graph) if g.joint_graph is not None else \
-        (torch.zeros(g.n_joints, dtype=torch.long), torch.zeros(g.n_beams, dtype=torch.long))  # a union of one
-    return (b.joint_state, b.beam_state, b.static.joint_bc, b.static.beam_bc, g.senders, g.receivers, g.edge_beam,
-            torch.as_tensor(f[0].t, dtype=torch.float32), *member)
+    b = GraphSet.first_frames(f)
+    g = b.index
+    return (b.joint_state[0], b.beam_state[0], b.static.joint_bc, b.static.beam_bc, g.senders, g.receivers,
+            g.edge_beam, torch.as_tensor(f[0].t, dtype=torch.float32), g.joint_graph, g.beam_graph)
 
 
 def _trace(model: Simulator, inputs: tuple[torch.Tensor, ...], n_graphs: int | None) -> torch.jit.ScriptModule:
@@ -299,14 +257,15 @@ def frame_times(features: list[EpisodeFeatures], steps: int, t: np.ndarray | Non
 
 
 def rollout_many(model: Simulator, sources: list, steps: int = 10, t: np.ndarray | None = None) -> list[Rollout]:
-    """rollout of every source, all designs advanced together as one disjoint union (Batch): one network pass per
+    """rollout of every source, all designs advanced together as one disjoint union (GraphSet of their frame 0, a
+    single design too: a union of one): one network pass per
     step for the lot, so the fixed cost of a step's few hundred small operations is shared (what a design search
     that scores many candidates pays per design); each answer is the one its design gets alone, up to rounding.
     Frame times: frame_times."""
     features = [as_features(s) for s in sources]
-    b = Batch.of(features)
+    b = GraphSet.first_frames(features)
     t = frame_times(features, steps, t)
-    inputs = (b.joint_state, b.beam_state, b.static, torch.as_tensor(t, dtype=torch.float32))
+    inputs = (b.joint_state[0], b.beam_state[0], b.static, torch.as_tensor(t, dtype=torch.float32))
     members = None
     with torch.inference_mode():
         if isinstance(model, Ensemble):  # the members' answers, kept for their spread; the answer is their mean

@@ -1,4 +1,4 @@
-"""learn.rollout.rollout_many / Batch: designs rolled out together as one disjoint union get their answers alone."""
+"""learn.rollout.rollout_many / GraphSet.first_frames: designs rolled out together as one disjoint union get their answers alone."""
 from dataclasses import replace
 
 import numpy as np
@@ -10,7 +10,7 @@ from learn.dataset import GraphSet
 from learn.ensemble import Ensemble
 from learn.features import extract
 from learn.model import Simulator
-from learn.rollout import Batch, compile_rollout, graph_inputs, rollout, rollout_many
+from learn.rollout import compile_rollout, graph_inputs, rollout, rollout_many
 
 torch.set_num_threads(1)
 
@@ -63,19 +63,19 @@ def test_designs_rolled_out_together_get_the_answers_they_get_alone(features, ki
 
 def test_a_compiled_union_gives_each_design_its_compiled_answer_alone(features):
     """graph_inputs of a list: one trace for the union (its size and design count traced in), whose points, split
-    per design by Batch.points_of, are each design's compiled points alone (to float32 rounding: 2e-5 of the largest
+    per design by GraphSet.points_of, are each design's compiled points alone (to float32 rounding: 2e-5 of the largest
     coordinate, the gap between the compiled and the eager rollout of one design); a union of another count is traced
     apart."""
     model = fitted(features, MODELS["local stiffness"])
     compiled = compile_rollout(model, features[0])
-    batch = Batch.of(features)
+    batch = GraphSet.first_frames(features)
     with torch.no_grad():
         points = compiled(*graph_inputs(features))[2]
         tol = 2e-5 * points.abs().max().item()
         for i, f in enumerate(features):
             torch.testing.assert_close(batch.points_of(points, i), compiled(*graph_inputs(f))[2], atol=tol, rtol=0)
         two = compiled(*graph_inputs(features[:2]))[2]
-        torch.testing.assert_close(Batch.of(features[:2]).points_of(two, 1), batch.points_of(points, 1), atol=tol,
+        torch.testing.assert_close(GraphSet.first_frames(features[:2]).points_of(two, 1), batch.points_of(points, 1), atol=tol,
                                    rtol=0)
         one = compiled(*graph_inputs(features[:1]))[2]  # a list of one design: a union of one
         torch.testing.assert_close(one, compiled(*graph_inputs(features[0]))[2], atol=tol, rtol=0)
