@@ -1,4 +1,5 @@
-"""learn.rollout.rollout_many / GraphSet.first_frames: designs rolled out together as one disjoint union get their answers alone."""
+"""learn.rollout.rollout_many (GraphSet.first_frames): designs rolled out together as one disjoint union get their
+answers alone."""
 from dataclasses import replace
 
 import numpy as np
@@ -75,8 +76,8 @@ def test_a_compiled_union_gives_each_design_its_compiled_answer_alone(features):
         for i, f in enumerate(features):
             torch.testing.assert_close(batch.points_of(points, i), compiled(*graph_inputs(f))[2], atol=tol, rtol=0)
         two = compiled(*graph_inputs(features[:2]))[2]
-        torch.testing.assert_close(GraphSet.first_frames(features[:2]).points_of(two, 1), batch.points_of(points, 1), atol=tol,
-                                   rtol=0)
+        torch.testing.assert_close(GraphSet.first_frames(features[:2]).points_of(two, 1), batch.points_of(points, 1),
+                                   atol=tol, rtol=0)
         one = compiled(*graph_inputs(features[:1]))[2]  # a list of one design: a union of one
         torch.testing.assert_close(one, compiled(*graph_inputs(features[0]))[2], atol=tol, rtol=0)
     assert len(compiled.traces) == 3 + len({(f.incidence.n_joints, f.incidence.n_beams) for f in features})
