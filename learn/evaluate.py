@@ -19,9 +19,10 @@ from data_schema import atomic
 from learn import ensemble
 from learn.dataset import episode_paths, load_features
 from learn.features import EpisodeFeatures, rebuild_all_points
-from learn.model import Simulator, static_from
+from learn.model import Simulator
 from learn.roll import ONE_KIND, ROLLED, roll
-from learn.rollout import answer_unroll, compile_rollout, graph_inputs, input_floor, reference, rollout
+from learn.rollout import (answer_unroll, compile_rollout, graph_inputs, input_floor, plain_inputs, reference,
+                           rollout)
 from learn.validity import check, thresholds
 
 log = logging.getLogger(__name__)
@@ -172,10 +173,8 @@ def median_seconds(fn, repeats: int) -> float:
 
 def eager_rollout(model: Simulator, f: EpisodeFeatures):
     """One design's rollout from its initial graph to the rebuilt points of every frame, eager PyTorch."""
-    static = static_from(f.joint_bc, f.beam_bc, f.incidence)
-    j0, b0 = torch.as_tensor(f.joint_state[0]), torch.as_tensor(f.beam_state[0])
-    t = torch.as_tensor(f.t, dtype=torch.float32)
-    return lambda: rebuild_all_points(*answer_unroll(model, j0, b0, static, t))
+    inputs = plain_inputs(f)
+    return lambda: rebuild_all_points(*answer_unroll(model, *inputs))
 
 
 def busy(load: float, threads: int, cpus: int | None = None) -> bool:

@@ -137,14 +137,20 @@ class _Unroll(torch.nn.Module):
         return js, bs, rebuild_all_points(js, bs)
 
 
+def plain_inputs(f: EpisodeFeatures) -> tuple[torch.Tensor, torch.Tensor, Static, torch.Tensor]:
+    """One design's frame 0 on its own plain graph (not a union of one): joint and beam states, the static graph and
+    the frame times; what the compiled single-design rollout and learn.evaluate's eager reference start from."""
+    return (torch.as_tensor(f.joint_state[0]), torch.as_tensor(f.beam_state[0]),
+            static_from(f.joint_bc, f.beam_bc, f.incidence), torch.as_tensor(f.t, dtype=torch.float32))
+
+
 def graph_inputs(f: EpisodeFeatures | list[EpisodeFeatures]) -> tuple[torch.Tensor, ...]:
     """The positional inputs of a compiled rollout: of one design (frame 0 and the frame times), or of a list of
     designs as one disjoint union (then also which design every joint and beam belongs to). The designs of a list
     share their frame times (the first's are used)."""
     if not isinstance(f, list):
-        s = static_from(f.joint_bc, f.beam_bc, f.incidence)
-        return (torch.as_tensor(f.joint_state[0]), torch.as_tensor(f.beam_state[0]), s.joint_bc, s.beam_bc,
-                s.index.senders, s.index.receivers, s.index.edge_beam, torch.as_tensor(f.t, dtype=torch.float32))
+        j0, b0, s, t = plain_inputs(f)
+        return j0, b0, s.joint_bc, s.beam_bc, s.index.senders, s.index.receivers, s.index.edge_beam, t
     b = GraphSet.first_frames(f)
     g = b.index
     return (b.joint_state[0], b.beam_state[0], b.static.joint_bc, b.static.beam_bc, g.senders, g.receivers,
