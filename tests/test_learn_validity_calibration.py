@@ -168,6 +168,45 @@ def test_an_answer_of_a_one_kind_design_that_has_not_rolled_is_the_unrolled_indi
     assert unrolled_one_kind(replace(reference(extract(ep)), points=np.stack([flat, bowl]))) == 0.0
 
 
+def test_a_local_model_flags_every_one_kind_design_however_its_answer_rolled():
+    """conf/validity `local: max_unrolled_one_kind: 0` (session 36): a one-kind design sits at a bifurcation, so its
+    answer is flagged even when it has rolled fully one way, with the reason naming the bifurcation; a mixed design's
+    indicator is 0 and never trips it."""
+    from dataclasses import replace
+
+    from omegaconf import OmegaConf
+
+    from data_schema.testing import synthetic_episode
+    from learn.dataset import GraphSet
+    from learn.features import extract
+    from learn.model import Simulator
+    from learn.rollout import reference
+    from learn.validity import check, thresholds
+
+    conf = OmegaConf.to_container(OmegaConf.load(REPO / "conf" / "validity" / "default.yaml"))
+    ep = synthetic_episode(3, 3, 5, 3, 3, frames=3, seed=0)
+    ep.beam_kind[:] = 1  # all down
+    one_kind = extract(ep)
+    data = GraphSet.build([one_kind])
+    model = Simulator.fit({"core": "double_gn", "latent": 4, "widths": [8], "frame": "local"},
+                          data.joint_state, data.beam_state, data.static)
+    limits = {**thresholds(conf, model), "max_dislocation_rel": 1e9, "max_out_of_range": 1.0}  # this indicator alone
+    assert limits["max_unrolled_one_kind"] == 0
+    r = reference(one_kind)
+    flat = r.points[0]
+    rolled = flat.copy()
+    lo, span = flat[:, 0].min(), np.ptp(flat[:, 0])
+    rolled[:, 0] = lo + 0.05 * (flat[:, 0] - lo)  # x extent to 5 %, y kept: rolled almost fully one way
+    verdict = check(model, replace(r, points=np.stack([flat, flat, rolled])), **limits)
+    assert verdict.unrolled_one_kind == pytest.approx(0.05, abs=1e-6) and span > 0
+    assert not verdict.valid and verdict.first_bad_frame == 2
+    assert "all actuators down: a bifurcation" in verdict.reasons[0]
+    ep.beam_kind[0] = 0  # one up among the downs: mixed
+    mixed = reference(extract(ep))
+    verdict = check(model, replace(mixed, points=np.stack([flat, flat, rolled])), **limits)
+    assert verdict.unrolled_one_kind == 0.0 and verdict.valid
+
+
 def test_the_roll_is_measured_along_the_lattice_whatever_its_angle_to_x():
     """A grid turned 45 deg about z that rolls along its lattice direction i shrinks alike along x and y: measured
     along x and y (as before session 31) it would pass as unrolled (1 - |s_x - s_y| near 1); along the lattice
