@@ -54,7 +54,7 @@ train:  ## train the Double GN on the episodes in OUT (resumes runs/train/last.p
 evaluate:  ## roll out the trained model on the held-out split; report in runs/evaluate/
 	$(PY) -m learn.evaluate data_dir=$(OUT)
 
-reference-train:  ## the full-scale reference training (conf/experiment/reference.yaml; data from make reference-data; ~2.3 h on one core for the [256, 128] default, from session 35's 348-design runs: 18 epochs in 77 min beside another; resumable)
+reference-train:  ## the full-scale reference training (conf/experiment/reference.yaml; data from make reference-data; 2.2 h on one core for the [256, 128] default, session 36's runs/s36_ref348_e32; resumable)
 	$(PY) -m learn.train +experiment=reference $(ARGS)
 
 REF ?= reports/reference
