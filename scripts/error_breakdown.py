@@ -1,0 +1,120 @@
+"""Where held-out errors sit, from learn.evaluate reports: by actuator kind and by design size, and what two validity
+rules flag. `.venv/bin/python scripts/error_breakdown.py reports/a/102 [reports/b/102 ...] [--train-sizes DATA_DIR
+--split conf/held_out/ds_default.yaml --train-designs 348] [--out reports/breakdown.md]`.
+
+- kind: per report and pooled, the designs (all up, all down, mixed) and how many are worse than --bad (10 % of the
+  design size: the validity calibration's flag_error_rel);
+- size: the mixed designs' median and worst error per design-size bin (mm), beside how many training designs fall
+  in each bin (with --train-sizes: the first --train-designs episodes by name that the split file does not hold out,
+  as learn.train's train_designs takes them);
+- rules: bad answers caught and good ones flagged by `out-of-range share > --max-out-of-range or unrolled indicator >
+  T`, for T = --unrolled (the session-32 local threshold) and T = 0 (every one-kind design), as conf/validity judges.
+Session 36 (docs/learned_simulator.md) made its size table and its counts over four models with this.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+
+def designs_of(report_dir: str) -> list[dict]:
+    path = Path(report_dir)
+    return json.loads((path / "report.json" if path.is_dir() else path).read_text())["designs"]
+
+
+def training_sizes(data_dir: str, split_file: str, n: int | None) -> np.ndarray:
+    """Design sizes (mm) of the first n training episodes by name: those the split file does not hold out."""
+    from data_schema import read_episode
+    from learn.features import extract
+
+    split = yaml.safe_load(Path(split_file).read_text())
+    held = set(split.get("val", [])) | set(split.get("test", []))
+    paths = [p for p in sorted(Path(data_dir).glob("*.h5")) if p.name not in held][:n]
+    if not paths:
+        raise SystemExit(f"--train-sizes {data_dir}: no training episodes (*.h5 not held out by {split_file})")
+    return np.array([extract(read_episode(p), name=p.name).design_size for p in paths])
+
+
+def kind_table(reports: dict[str, list[dict]], bad: float) -> list[str]:
+    lines = ["| report | kind | designs | worse than bad |", "|---|---|---|---|"]
+    pooled: dict[str, list[int]] = {}
+    for name, designs in reports.items():
+        for kind in sorted({d["actuators"] for d in designs}):
+            of = [d for d in designs if d["actuators"] == kind]
+            n_bad = sum(d["max_rel_error"] > bad for d in of)
+            lines.append(f"| {name} | {kind} | {len(of)} | {n_bad} |")
+            pooled.setdefault(kind, [0, 0])
+            pooled[kind][0] += len(of)
+            pooled[kind][1] += n_bad
+    lines += [f"| pooled | {k} | {n} | {b} |" for k, (n, b) in sorted(pooled.items())]
+    return lines
+
+
+def size_table(designs: list[dict], bins: list[float], train: np.ndarray | None) -> list[str]:
+    lines = ["| design size (mm) | training designs | mixed held-out designs | median | worst |", "|---|---|---|---|---|"]
+    mixed = [d for d in designs if d["actuators"] == "mixed"]
+    for lo, hi in zip(bins[:-1], bins[1:]):
+        e = np.array([d["max_rel_error"] for d in mixed if lo <= d["design_size_mm"] < hi])
+        n_train = "-" if train is None else str(int(((train >= lo) & (train < hi)).sum()))
+        stats = f"{100 * np.median(e):.2f} % | {100 * e.max():.2f} %" if len(e) else "- | -"
+        lines.append(f"| {lo:g}-{hi:g} | {n_train} | {len(e)} | {stats} |")
+    return lines
+
+
+def rule_table(reports: dict[str, list[dict]], bad: float, max_oor: float, unrolled: float) -> list[str]:
+    lines = ["| rule | bad flagged | good flagged | Youden's J |", "|---|---|---|---|"]
+    designs = [d for ds in reports.values() for d in ds]
+    errors = np.array([d["max_rel_error"] for d in designs])
+    oor = np.array([d["validity"]["out_of_range_fraction"] for d in designs])
+    roll = np.array([d["validity"]["unrolled_one_kind"] for d in designs])
+    is_bad = errors > bad
+    for t in (unrolled, 0.0):
+        flagged = (oor > max_oor) | (roll > t)
+        caught, false = int((flagged & is_bad).sum()), int((flagged & ~is_bad).sum())
+        j = caught / max(is_bad.sum(), 1) - false / max((~is_bad).sum(), 1)
+        lines.append(f"| out of range > {max_oor:g} or unrolled > {t:g} | {caught} of {int(is_bad.sum())} | "
+                     f"{false} of {int((~is_bad).sum())} | {j:.2f} |")
+    return lines
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("reports", nargs="+", help="learn.evaluate out_dirs (or their report.json); the first gets the "
+                   "size table")
+    p.add_argument("--bad", type=float, default=0.10, help="a design is bad above this max error / design size")
+    p.add_argument("--bins", default="0,150,175,200,225,1000", help="design-size bin edges, mm, comma-separated")
+    p.add_argument("--train-sizes", metavar="DATA_DIR", help="count training designs per size bin from this data")
+    p.add_argument("--split", default="conf/held_out/ds_default.yaml", help="the split file of --train-sizes")
+    p.add_argument("--train-designs", type=int, help="the first N training designs (learn.train's train_designs)")
+    p.add_argument("--max-out-of-range", type=float, default=0.381, help="conf/validity local: max_out_of_range")
+    p.add_argument("--unrolled", type=float, default=0.867, help="the unrolled threshold to compare with 0")
+    p.add_argument("--out", help="also write the tables here (markdown)")
+    a = p.parse_args()
+    if not 0 < a.bad < 1:
+        raise SystemExit(f"--bad={a.bad}: allowed is a fraction of the design size in (0, 1)")
+    bins = [float(x) for x in a.bins.split(",")]
+    if len(bins) < 2 or any(hi <= lo for lo, hi in zip(bins[:-1], bins[1:])):
+        raise SystemExit(f"--bins={a.bins}: give at least two increasing edges in mm")
+    reports = {r: designs_of(r) for r in a.reports}
+    train = training_sizes(a.train_sizes, a.split, a.train_designs) if a.train_sizes else None
+    text = "\n".join([f"# Error breakdown (bad: max error > {100 * a.bad:g} % of the design size)", "",
+                      "## By actuator kind", "", *kind_table(reports, a.bad), "",
+                      f"## Mixed designs by size ({a.reports[0]})", "", *size_table(reports[a.reports[0]], bins, train),
+                      "", "## Validity rules over all reports", "",
+                      *rule_table(reports, a.bad, a.max_out_of_range, a.unrolled), ""])
+    print(text)
+    if a.out:
+        from data_schema import atomic
+        atomic.write_text(Path(a.out), text)
+
+
+if __name__ == "__main__":
+    main()
