@@ -12,7 +12,7 @@ export OMPI_ALLOW_RUN_AS_ROOT=1
 export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset reference-data validate fingerprint bench-fea stability bench-rollout tradeoff train evaluate reference-train reference-evaluate compare validity-calibration curves diagnose predict sweep learned-extremes clean
+.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset reference-data large-data validate fingerprint bench-fea stability bench-rollout tradeoff train evaluate reference-train reference-evaluate compare validity-calibration curves diagnose predict sweep learned-extremes clean
 
 help:  ## list the targets
 	@grep -E '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-12s %s\n", $$1, $$2}'
@@ -40,6 +40,10 @@ REF_N ?= 400
 reference-data:  ## the README's learned-simulator data: data/ds_default (REF_N=400; 800 since session 17) + data/ds_heldout (50 new designs); resumable; JOBS=2: ~250 episodes/h
 	$(PY) -m fea_factory.generate n=$(REF_N) out=data/ds_default jobs=$(JOBS) np=1
 	$(PY) -m fea_factory.generate n=50 start=100000 out=data/ds_heldout jobs=$(JOBS) np=1
+
+LARGE_N ?= 200
+large-data:  ## extra large training designs (conf/grid/large.yaml) -> data/ds_large, indices from 200000 so names never meet ds_default's; resumable
+	$(PY) -m fea_factory.generate n=$(LARGE_N) start=200000 grid=large out=data/ds_large jobs=$(JOBS) np=1
 
 validate:  ## validate every episode in OUT
 	$(PY) -m data_schema.validate $(OUT)

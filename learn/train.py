@@ -18,6 +18,7 @@ from learn import checkpoint
 from learn.conditions import envelope
 from learn.dataset import (GraphSet, TurnedSet, augment, augment_angles, episode_paths, extend_split, load_features,
                            split_missing_checked, split_names)
+from learn.features import EpisodeFeatures
 from learn.gn import dropout_checked, fraction_checked
 from learn.metrics import multistep_loss, rollout_errors
 from learn.model import (Simulator, integer_in, passes_checked, rollout_lattice_turns_checked,
@@ -203,6 +204,23 @@ def gradient_carry(cfg: DictConfig) -> float:
     return float(value)
 
 
+def training_extra(dirs, names: set[str]) -> list[EpisodeFeatures]:
+    """conf/train.yaml train_extra_dirs: the episodes of these directories, all training designs (never held out),
+    e.g. extra designs of one region of the design space. Their file names must differ from data_dir's and each
+    other's (a split holds names): generate them with another `start=`."""
+    if isinstance(dirs, (str, Path)):
+        raise ValueError(f"train_extra_dirs={dirs!r}: must be a list of directories, e.g. '[data/ds_large]'")
+    extra: list[EpisodeFeatures] = []
+    for d in dirs:
+        for f in load_features(episode_paths(d)):
+            if f.name in names:
+                raise ValueError(f"train_extra_dirs: {d}/{f.name} has the name of an episode already read (data_dir "
+                                 "or an earlier extra directory); generate extra designs with another start=")
+            names.add(f.name)
+            extra.append(f)
+    return extra
+
+
 def weight_checked(cfg: DictConfig, name: str, meaning: str) -> float:
     """A loss weight from conf/train.yaml: a number in [0, 100], else an error naming the key."""
     w = cfg.get(name, 0.0)
@@ -319,7 +337,8 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
 
     init = None if resumed or not cfg.get("init_from") else checkpoint.load(cfg.init_from)
     features = load_features(episode_paths(cfg.data_dir))
-    by_name = {f.name: f for f in features}
+    extra = training_extra(cfg.get("train_extra_dirs") or [], {f.name for f in features})
+    by_name = {f.name: f for f in features + extra}
     if resumed:
         split = resumed["split"]
     elif cfg.get("split_from") or init:  # keep an earlier run's held-out designs; new episodes join train
@@ -334,6 +353,9 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
         keep = integer_in(cfg.train_designs, "train_designs", 1, len(split["train"]),
                           f"the first of the split's {len(split['train'])} training designs to train on; null: all")
         split = {**split, "train": split["train"][:keep]}
+    if not resumed and extra:  # after the cut: train_designs counts data_dir's designs only
+        split = {**split, "train": split["train"] + [f.name for f in extra]}
+        log.info("train_extra_dirs: %d more training designs", len(extra))
     log.info("episodes: %s", {s: len(v) for s, v in split.items()})
     train_envelope = envelope([by_name[n].conditions for n in split["train"]])  # physics the graphs do not carry
     train_set, fit_blocks = training_sets([by_name[n] for n in split["train"]], cfg)

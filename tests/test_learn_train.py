@@ -437,6 +437,24 @@ def test_train_designs_keeps_the_first_n_training_designs_and_the_held_out_ones(
         assert not (tmp_path / f"bad{bad}" / "last.pt").exists()
 
 
+def test_train_extra_dirs_add_training_designs_after_the_cut_and_resume_with_them(data_dir, tmp_path):
+    (tmp_path / "held_out.yaml").write_text("val: [ep001.h5]\ntest: [ep003.h5]\n")
+    extra = tmp_path / "extra"
+    extra.mkdir()
+    write_episode(extra / "ep200.h5", synthetic_episode(3, 3, 5, 3, 3, frames=11, seed=200))
+    args = ("epochs=2", f"split_from={tmp_path / 'held_out.yaml'}", "train_designs=1", f"train_extra_dirs=[{extra}]")
+    train(cfg_for("train", tiny(data_dir, tmp_path / "run", *args, "time_limit_min=1e-6")))  # pauses after epoch 1
+    split = checkpoint.load(tmp_path / "run" / "last.pt")["split"]
+    assert split == {"train": ["ep000.h5", "ep200.h5"], "val": ["ep001.h5"], "test": ["ep003.h5"]}
+    summary = train(cfg_for("train", tiny(data_dir, tmp_path / "run", *args)))  # resumes: reads the extra again
+    assert summary["epochs_run"] == 2 and checkpoint.load(tmp_path / "run" / "last.pt")["split"] == split
+    with pytest.raises(ValueError, match="ep000.h5 has the name of an episode already read"):
+        train(cfg_for("train", tiny(data_dir, tmp_path / "twice", "epochs=1", f"train_extra_dirs=[{data_dir}]")))
+    with pytest.raises(ValueError, match="train_extra_dirs='x': must be a list"):
+        train(cfg_for("train", tiny(data_dir, tmp_path / "str", "epochs=1", "train_extra_dirs=x")))
+    assert not (tmp_path / "twice" / "last.pt").exists() and not (tmp_path / "str" / "last.pt").exists()
+
+
 @pytest.mark.parametrize("text, message", [
     ("val: [a.h5]\n", "must map val and test"),
     ("val: [a.h5]\ntest: [b.h5]\nvalidation: [c.h5]\n", "must map val and test"),

@@ -263,6 +263,17 @@ def test_every_grid_option_composes_and_samples(name):
         assert d.n_joints == c.grid.nx * c.grid.ny
 
 
+def test_the_large_grid_is_the_default_at_steps_of_75_to_100_mm(cfg):
+    """conf/grid/large.yaml (make large-data): only the lattice steps differ from the default sampler, and every
+    design draws them from the upper half of the default's range."""
+    large = conf("grid=large")
+    changed = {k for k in cfg.grid if large.grid[k] != cfg.grid[k]}
+    assert changed == {"spacing_x", "spacing_y"}
+    designs = sample_designs(large.grid, large.blocks, 40, seed=0)
+    spacings = np.array([d.meta["spacing"] for d in designs])
+    assert spacings.min() >= 75.0 and spacings.max() <= 100.0
+
+
 def test_cli_writes_loadable_json(tmp_path):
     out = tmp_path / "designs"
     run = subprocess.run([sys.executable, "-m", "fea_factory.sample", "n=3", f"out={out}", "seed=4"],
