@@ -57,7 +57,9 @@ def design_means(x: torch.Tensor, graph: torch.Tensor | None, n_graphs: int) -> 
     disjoint union; None: all rows are one design)."""
     if graph is None:
         return x.mean(-2, keepdim=True)
-    count = torch.bincount(graph, minlength=n_graphs).clamp_min(1).to(x.dtype)[:, None]
+    # rows per design as a sum of ones into n_graphs slots (not bincount, whose length depends on the data): a
+    # compiled step (learn/aot.py) has every shape fixed by its inputs' shapes
+    count = x.new_zeros(n_graphs).index_add_(0, graph, x.new_ones(graph.shape[0])).clamp_min(1)[:, None]
     return sum_to(x, graph, n_graphs) / count
 
 

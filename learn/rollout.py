@@ -7,6 +7,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
+from learn.aot import AotSteps, backend_checked
 from learn.ensemble import Ensemble, members_of, stack_mean
 from learn.dataset import GraphSet
 from learn.features import EpisodeFeatures, beams_along_i, extract, rebuild_all_points, welded
@@ -17,19 +18,20 @@ from learn.symmetry import (LATTICE_QUARTER_TURNS, lattice_matrices, rotation_an
 
 
 def unroll(model: Simulator, joint_state: torch.Tensor, beam_state: torch.Tensor, static: Static,
-           t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+           t: torch.Tensor, stepper: AotSteps | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """From states [..., J, Dj], [..., B, Db] at t[0], step through t[1:]; -> [F, ..., J, Dj], [F, ..., B, Db].
     A direct model (model.update=direct) answers every frame from the states at t[0] and the frame's time, all
-    frames in one batched pass."""
+    frames in one batched pass. stepper: each step by the model's compiled step (learn/aot.py), not model.step."""
+    step = model.step if stepper is None else stepper.step_of(model)
     if model.direct:
         n, lead = len(t) - 1, joint_state.shape[:-2]
         times = t[1:].reshape(n, *(1,) * len(lead)).expand(n, *lead)
-        j, b = model.step(joint_state.expand(n, *joint_state.shape), beam_state.expand(n, *beam_state.shape),
+        j, b = step(joint_state.expand(n, *joint_state.shape), beam_state.expand(n, *beam_state.shape),
                           static, times)
         return torch.cat([joint_state[None], j]), torch.cat([beam_state[None], b])
     joints, beams = [joint_state], [beam_state]
     for k in range(len(t) - 1):
-        j, b = model.step(joints[-1], beams[-1], static, t[k])
+        j, b = step(joints[-1], beams[-1], static, t[k])
         joints.append(j)
         beams.append(b)
     return torch.stack(joints), torch.stack(beams)
@@ -75,7 +77,7 @@ def _relabelled(x: torch.Tensor, A: torch.Tensor, reverse: torch.Tensor | None, 
 
 
 def answer_unroll(model: Simulator, joint_state: torch.Tensor, beam_state: torch.Tensor, static: Static,
-                  t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                  t: torch.Tensor, stepper: AotSteps | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """unroll as the trained simulator answers: the design is rolled out in several copies at once (one batch) --
     labelled from model.rollout_lattice_turns corners of its lattice (EpisodeFeatures.half_turned, quarter_turned),
     each rotated about z through the fixed joint (the features' origin) by model.rollout_rotations angles, and also
@@ -86,12 +88,13 @@ def answer_unroll(model: Simulator, joint_state: torch.Tensor, beam_state: torch
     edges, and every core treats its edges alike and sums them; only a stiffness model reads a beam's direction (its
     solve and rigid motion), so its labellings go as one disjoint union, each with its reversed beams' ends swapped
     (GraphIndex.labelled_union). An Ensemble answers with the mean of its members'
-    answers, frame by frame. States: one design or one disjoint union of designs (no leading batch axes)."""
+    answers, frame by frame. States: one design or one disjoint union of designs (no leading batch axes). stepper:
+    every step by its model's compiled step (learn/aot.py)."""
     if isinstance(model, Ensemble):
-        return stack_mean([answer_unroll(m, joint_state, beam_state, static, t) for m in model.members])
+        return stack_mean([answer_unroll(m, joint_state, beam_state, static, t, stepper) for m in model.members])
     n, mirror, turns = model.rollout_rotations, model.rollout_mirror, model.rollout_lattice_turns
     if n <= 1 and not mirror and turns == 1:
-        return unroll(model, joint_state, beam_state, static, t)
+        return unroll(model, joint_state, beam_state, static, t, stepper)
     Lj, Lj_back, Ljbc = _lattice(JOINT, turns, joint_state.dtype)
     Lb, Lb_back, Lbbc = _lattice(BEAM, turns, beam_state.dtype)
     g = static.index
@@ -110,10 +113,10 @@ def answer_unroll(model: Simulator, joint_state: torch.Tensor, beam_state: torch
         union = lambda x: x.movedim(1, -3).flatten(-3, -2)  # noqa: E731  [k, L, ..., N, D] -> [k, ..., L N, D]
         apart = lambda x: x.unflatten(-2, (L, -1)).movedim(-3, 2)  # noqa: E731  [F, k, ..., L N, D] -> [F, k, L, ...]
         js, bs = unroll(model, union(js), union(bs), Static(union(static_copies.joint_bc), union(static_copies.beam_bc),
-                                                            g.labelled_union(reverse)), t)
+                                                            g.labelled_union(reverse)), t, stepper)
         js, bs = apart(js), apart(bs)  # [F, k, L, ..., N, S]
     else:
-        js, bs = unroll(model, js, bs, static_copies, t)  # [F, k, L, ..., N, S]
+        js, bs = unroll(model, js, bs, static_copies, t, stepper)  # [F, k, L, ..., N, S]
     back = lambda x, A: torch.einsum("fk...nd,kde->f...ne", x, A)  # noqa: E731  summed over k -> [F, L, ..., N, S]
     return (_relabelled(back(js, Aj_back), Lj_back, None, 1).sum(1) / copies,
             _relabelled(back(bs, Ab_back), Lb_back, reverse, 1).sum(1) / copies)
@@ -122,18 +125,21 @@ def answer_unroll(model: Simulator, joint_state: torch.Tensor, beam_state: torch
 class _Unroll(torch.nn.Module):
     """unroll + rebuild_all_points with the graph passed as tensors, so one trace serves every graph size. With
     n_graphs, the graph is a disjoint union of that many designs (graph_inputs of a list) and the two extra inputs
-    say which design each joint and beam belongs to."""
+    say which design each joint and beam belongs to. With a stepper every step is its model's compiled step
+    (learn/aot.py); such an _Unroll is run as it is, not traced."""
 
-    def __init__(self, model: Simulator, n_graphs: int | None = None):
+    def __init__(self, model: Simulator, n_graphs: int | None = None, stepper: AotSteps | None = None):
         super().__init__()
         self.model = model
         self.n_graphs = n_graphs
+        self.stepper = stepper
 
     def forward(self, joint_state, beam_state, joint_bc, beam_bc, senders, receivers, edge_beam, t, joint_graph=None,
                 beam_graph=None):
         index = GraphIndex(senders, receivers, edge_beam, joint_state.shape[-2], beam_state.shape[-2], joint_graph,
                            beam_graph, self.n_graphs or 1)
-        js, bs = answer_unroll(self.model, joint_state, beam_state, Static(joint_bc, beam_bc, index), t)
+        js, bs = answer_unroll(self.model, joint_state, beam_state, Static(joint_bc, beam_bc, index), t,
+                               self.stepper)
         return js, bs, rebuild_all_points(js, bs)
 
 
@@ -165,18 +171,26 @@ def _trace(model: Simulator, inputs: tuple[torch.Tensor, ...], n_graphs: int | N
 
 
 class CompiledRollout:
-    """TorchScript rollouts (traced, frozen), called like _Unroll with graph_inputs(f): the same numbers as the
-    eager rollout, a fraction of the Python overhead per step, as many steps as the traced example has frames - 1.
+    """Compiled rollouts, called like _Unroll with graph_inputs(f): the same numbers as the eager rollout, as many
+    steps as the inputs' frame times give. backend "aot": every step of every model (an ensemble's members each) is
+    an AOTInductor package (learn/aot.py: compiled once per model and input shapes, kept in `cache`), the rest of the
+    rollout (the copies an answer averages, stacking the frames, rebuilding the points) plain PyTorch: the fastest
+    for one design (sessions 38: x0.6 of the trace). backend "torchscript" (the default): TorchScript rollouts
+    (traced, frozen), a fraction of the Python overhead per step, as many steps as the traced example has frames - 1.
     An additive model has one trace that serves every graph; a kinematic model's placement order (learn/kinematics.py)
     is baked into its trace, so it keeps one per graph (incidence and fixed joint), traced on first use; a stiffness
     model's linear system has the graph's size baked in, so it keeps one per size (joints, beams). Called with the
     inputs of a list of designs (graph_inputs), it rolls them out as one disjoint union: one pass of the network for
     all of them, each union's design count and size traced in (one trace per count and size)."""
 
-    def __init__(self, model: Simulator, example: EpisodeFeatures):
+    def __init__(self, model: Simulator, example: EpisodeFeatures, backend: str = "torchscript",
+                 cache: str | None = None):
         self.model = model
+        self.backend = backend_checked(backend)
+        self.stepper = AotSteps(cache) if self.backend == "aot" else None
         self.traces: dict = {}
-        self(*graph_inputs(example))
+        with torch.inference_mode():
+            self(*graph_inputs(example))
 
     @staticmethod
     def n_graphs(inputs: tuple[torch.Tensor, ...]) -> int | None:
@@ -185,6 +199,8 @@ class CompiledRollout:
 
     def key(self, inputs: tuple[torch.Tensor, ...]):
         n = self.n_graphs(inputs)
+        if self.stepper is not None:  # the stepper keeps a package per input shapes; one _Unroll per design count
+            return ("aot", n)
         union = () if n is None else ("union", n)  # a union's design count is traced in
         if self.model.kinematic:  # its placement order is traced in: one trace per graph
             joint_bc, senders, receivers, edge_beam = inputs[2], inputs[4], inputs[5], inputs[6]
@@ -198,13 +214,16 @@ class CompiledRollout:
     def __call__(self, *inputs: torch.Tensor):
         key = self.key(inputs)
         if key not in self.traces:
-            self.traces[key] = _trace(self.model, inputs, self.n_graphs(inputs))
+            self.traces[key] = (_Unroll(self.model.eval(), self.n_graphs(inputs), self.stepper)
+                                if self.stepper is not None else _trace(self.model, inputs, self.n_graphs(inputs)))
         return self.traces[key](*inputs)
 
 
-def compile_rollout(model: Simulator, example: EpisodeFeatures) -> CompiledRollout:
-    """A compiled rollout, traced on `example` (see CompiledRollout)."""
-    return CompiledRollout(model, example)
+def compile_rollout(model: Simulator, example: EpisodeFeatures, backend: str = "torchscript",
+                    cache: str | None = None) -> CompiledRollout:
+    """A compiled rollout, compiled on `example` (see CompiledRollout; backend torchscript | aot, cache: where aot
+    keeps its packages, learn.aot.default_cache when None)."""
+    return CompiledRollout(model, example, backend, cache)
 
 
 @dataclass

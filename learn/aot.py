@@ -1,0 +1,153 @@
+"""Ahead-of-time compiled steps (AOTInductor): a model's step as one C++ package per graph shape.
+
+A one-design rollout is ~600 small tensor operations per step (learn.rollout), so its TorchScript trace pays the
+dispatch of each; `torch.export` + `torch._inductor.aoti_compile_and_package` turn the whole step into generated C++
+(the pointwise work fused, the matrix products and the solve as library calls) that a rollout calls once per step.
+Same numbers (float32 rounding; learn.evaluate checks every compiled rollout against the eager one).
+
+A package is compiled once per model and input shapes (~40-60 s on 2 cores) and kept on disk under a key of the
+model's weights, statistics and args, the shapes and the torch version, so a design session or the next evaluation
+loads it in milliseconds. Kinematic models are not compiled this way (their placement order is a Python tree).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from learn.graph import GraphIndex
+from learn.model import Simulator, Static
+from learn.stiffness import Layout
+
+BACKENDS = ("torchscript", "aot")  # rollout_backend: how learn.rollout.compile_rollout compiles a rollout
+
+
+def backend_checked(value) -> str:
+    """rollout_backend: one of BACKENDS."""
+    if value not in BACKENDS:
+        raise ValueError(f"rollout_backend={value!r}: must be one of {' | '.join(BACKENDS)} (torchscript: a traced "
+                         "rollout; aot: every step an AOTInductor-compiled C++ package, learn/aot.py)")
+    return value
+
+
+def default_cache() -> Path:
+    """Where packages are kept unless told: $MORPHSIM_AOT_CACHE, else ~/.cache/morphsim/aot."""
+    return Path(os.environ.get("MORPHSIM_AOT_CACHE") or Path.home() / ".cache" / "morphsim" / "aot")
+
+
+def _layout_tensors(plan: Layout) -> tuple[torch.Tensor, ...]:
+    return (*plan.ends, plan.joint_dof, plan.free, *plan.stiffness_at, plan.loads_at, plan.kept, plan.eliminated)
+
+
+class _Step(nn.Module):
+    """model.step with every input a tensor, as torch.export takes them: the states, the bc terms, the graph's
+    index (and with a union, which design each joint and beam belongs to), the step's time, then what a rollout
+    builds once per graph (a stiffness model's Layout, a span model's beam spans). The counts that shape the step
+    (designs in a union, a Layout's design and system sizes) are fixed per package."""
+
+    def __init__(self, model: Simulator, union: bool, n_graphs: int, layout_sizes: tuple[int, int] | None,
+                 spans: bool):
+        super().__init__()
+        self.model, self.union, self.n_graphs = model, union, n_graphs
+        self.layout_sizes, self.spans = layout_sizes, spans
+
+    def forward(self, joint_state, beam_state, joint_bc, beam_bc, senders, receivers, edge_beam, t, *rest):
+        rest = list(rest)
+        joint_graph, beam_graph = (rest.pop(0), rest.pop(0)) if self.union else (None, None)
+        g = GraphIndex(senders, receivers, edge_beam, joint_state.shape[-2], beam_state.shape[-2], joint_graph,
+                       beam_graph, self.n_graphs)
+        static = Static(joint_bc, beam_bc, g)
+        if self.layout_sizes is not None:
+            a, c, joint_dof, free, at_global, at_local, loads_at, kept, eliminated = rest[:9]
+            rest = rest[9:]
+            static.layout = Layout((a, c), joint_dof, free, *self.layout_sizes, (at_global, at_local), loads_at,
+                                   kept, eliminated)
+        if self.spans:
+            static.spans = rest.pop(0)
+        return self.model.step(joint_state, beam_state, static, t)
+
+
+def fingerprint(model: Simulator) -> str:
+    """sha256 of a model's args (but the rollout_* settings of its answers, which the step does not read), every
+    parameter and buffer (name, dtype, shape, bytes) and the torch version: two models with the same fingerprint
+    compute the same step."""
+    args = {k: v for k, v in model.args.items() if not k.startswith("rollout_")}
+    h = hashlib.sha256(json.dumps(args, sort_keys=True, default=str).encode())
+    h.update(torch.__version__.encode())
+    for name, x in model.state_dict().items():
+        h.update(f"{name}|{x.dtype}|{tuple(x.shape)}".encode())
+        h.update(x.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()
+
+
+class AotSteps:
+    """The compiled steps of every model it is asked for (an ensemble's members each), one package per model and
+    input shapes, loaded from `cache` when there and compiled into it (atomically) when not. step_of(model) is
+    called like model.step."""
+
+    def __init__(self, cache: str | Path | None = None, log: Callable[[str], None] | None = print):
+        self.cache = Path(cache) if cache else default_cache()
+        self.log = log or (lambda _: None)
+        self.runners: dict = {}
+        self.fingerprints: dict[int, str] = {}
+        self.compiled = 0  # packages compiled (not found in the cache) by this object
+
+    def step_of(self, model: Simulator) -> Callable:
+        if model.kinematic:
+            raise ValueError("rollout_backend=aot: a kinematic model (model.update=kinematic) places beams along a "
+                             "Python tree the export cannot follow; use rollout_backend=torchscript")
+        if id(model) not in self.fingerprints:
+            self.fingerprints[id(model)] = fingerprint(model)
+
+        def step(joint_state, beam_state, static: Static, t):
+            g = static.index
+            inputs = [joint_state, beam_state, static.joint_bc, static.beam_bc, g.senders, g.receivers, g.edge_beam,
+                      torch.as_tensor(t, dtype=joint_state.dtype)]
+            union = g.joint_graph is not None
+            if union:
+                inputs += [g.joint_graph, g.beam_graph]
+            sizes = None
+            if model.stiffness:
+                plan = static.stiffness_layout()
+                sizes = (plan.n_designs, plan.n)
+                inputs += list(_layout_tensors(plan))
+            if model.span_input:
+                inputs.append(static.beam_spans())
+            # contiguous, as when compiled: a package reads its inputs at the strides it was compiled with
+            inputs = [x.contiguous() for x in inputs]
+            shapes = [(tuple(x.shape), str(x.dtype)) for x in inputs]
+            key = (self.fingerprints[id(model)], union, g.n_graphs, sizes, bool(model.span_input), tuple(shapes))
+            if key not in self.runners:
+                self.runners[key] = self._runner(model, key, inputs, union, g.n_graphs, sizes)
+            out = self.runners[key](*inputs)
+            return out[0], out[1]
+
+        return step
+
+    def _runner(self, model: Simulator, key, inputs, union, n_graphs, sizes):
+        name = hashlib.sha256(repr(key).encode()).hexdigest()[:32]
+        path = self.cache / f"step_{name}.pt2"
+        if not path.exists():
+            self.cache.mkdir(parents=True, exist_ok=True)
+            self.log(f"aot: compiling the step for shapes {[s for s, _ in key[-1][:2]]} into {path} "
+                     "(once per model and graph size, ~1 min)")
+            module = _Step(model.eval(), union, n_graphs, sizes, bool(model.span_input)).eval()
+            example = tuple(x.detach().clone() for x in inputs)
+            with torch.inference_mode(False), torch.no_grad():
+                exported = torch.export.export(module, example)
+                fd, tmp = tempfile.mkstemp(suffix=".pt2", dir=self.cache)
+                os.close(fd)
+                try:
+                    torch._inductor.aoti_compile_and_package(exported, package_path=tmp)
+                    os.replace(tmp, path)  # atomic: a package is whole or absent
+                finally:
+                    if os.path.exists(tmp):
+                        os.unlink(tmp)
+            self.compiled += 1
+        return torch._inductor.aoti_load_package(str(path))

@@ -1,0 +1,100 @@
+"""learn.aot: a rollout whose every step is an AOTInductor package gives the eager rollout's numbers -- one design,
+designs rolled out together, an answer averaged over mirror and lattice copies (whose states reach the step at other
+strides than a package's first call), an ensemble -- keeps its packages on disk so that a second stepper compiles
+nothing, tells weights apart, and refuses what it cannot compile with the field named."""
+import copy
+
+import pytest
+import torch
+
+from data_schema.testing import synthetic_episode
+from learn.aot import AotSteps, backend_checked, fingerprint
+from learn.dataset import GraphSet
+from learn.ensemble import Ensemble
+from learn.features import extract, rebuild_all_points
+from learn.model import Simulator, Static
+from learn.rollout import answer_unroll, compile_rollout, graph_inputs, plain_inputs
+
+torch.set_num_threads(1)
+SCALE = 0.02  # weights drawn around the fit: the solve moves the joints 15-45 mm in 10 steps
+
+
+@pytest.fixture(scope="module")
+def features():
+    return [extract(synthetic_episode(3, 3, 5, 3, 3, 5, seed=s), name=f"ep{s}.h5") for s in range(3)]
+
+
+def small_model(features, seed: int = 0, **args) -> Simulator:
+    """A small local-frame stiffness simulator (the default kind) fitted to the features' statistics, its weights
+    drawn by `seed` and scaled up so that the solve moves the joints."""
+    data = GraphSet.build(features)
+    args = {"core": "double_gn", "latent": 8, "widths": [16, 8], "update": "stiffness", "frame": "local",
+            "stress_input": False, "pin_fixed_joint": True, "global_latent": 4, **args}
+    torch.manual_seed(seed)
+    model = Simulator.fit(args, data.joint_state, data.beam_state, data.static)
+    with torch.no_grad():
+        for p in model.core.parameters():
+            p.add_(SCALE * torch.randn(p.shape))
+    return model.eval()
+
+
+def first_frames(features) -> tuple:
+    """The eager rollout's inputs for one design or (a list) their disjoint union."""
+    if not isinstance(features, list):
+        return plain_inputs(features)
+    b = GraphSet.first_frames(features)
+    return b.joint_state[0], b.beam_state[0], b.static, torch.as_tensor(features[0].t, dtype=torch.float32)
+
+
+def assert_as_exact_as_eager(got: torch.Tensor, model, features) -> None:
+    """A compiled rollout's points are as close to the exact (float64) eager rollout as the float32 eager rollout is:
+    within 1e-4 of the design size (learn.evaluate's check) plus 3x the float32 eager rollout's own gap. A random
+    model amplifies rounding over the steps (one here: 0.01 mm between float32 and float64), and a compiled step sums
+    in another order, so its gap is of that size; a step read wrongly is off by millimetres (a package fed its states
+    at other strides than compiled: 150 mm)."""
+    j, b, static, t = first_frames(features)
+    with torch.inference_mode():
+        eager = rebuild_all_points(*answer_unroll(model, j, b, static, t))
+        exact = copy.deepcopy(model).double()
+        exact = rebuild_all_points(*answer_unroll(exact, j.double(), b.double(), Static(
+            static.joint_bc.double(), static.beam_bc.double(), static.index), t.double())).float()
+    size = max(f.design_size for f in (features if isinstance(features, list) else [features]))
+    rounding = float((eager - exact).abs().max())
+    torch.testing.assert_close(got, exact, atol=1e-4 * size + 3 * rounding, rtol=0.0)
+
+
+def test_aot_steps_give_the_eager_rollout_alone_together_with_copies_and_in_an_ensemble(features, tmp_path):
+    model = small_model(features)
+    compiled = compile_rollout(model, features[0], "aot", tmp_path)
+    with torch.inference_mode():
+        for f in features[1:]:  # a package compiled on one design answers another of its size
+            assert_as_exact_as_eager(compiled(*graph_inputs(f))[2], model, f)
+        assert_as_exact_as_eager(compiled(*graph_inputs(features))[2], model, features)  # a union: its own package
+        j, b, static, t = first_frames(features[1])
+        moved = (answer_unroll(model, j, b, static, t)[0][-1] - j).abs().max()
+    assert compiled.stepper.compiled == 2
+    assert moved > 1.0, f"the joints moved {moved:.3g} mm: too little to tell a wrong step from a right one"
+
+    model.answer_with(1, True, 4)  # 8 copies: states [2, 4 J, S], made by movedim, not contiguous
+    copies = compile_rollout(model, features[0], "aot", tmp_path)
+    assert_as_exact_as_eager(copies(*graph_inputs(features[1]))[2], model, features[1])
+
+    pair = Ensemble([small_model(features, seed=0), small_model(features, seed=1)])
+    again = compile_rollout(pair, features[0], "aot", tmp_path)  # member 0's package is on disk already
+    assert_as_exact_as_eager(again(*graph_inputs(features[2]))[2], pair, features[2])
+    assert again.stepper.compiled == 1  # member 1's
+    assert compile_rollout(model.answer_with(1, False, 1), features[0], "aot", tmp_path).stepper.compiled == 0
+
+
+def test_a_package_is_keyed_by_the_weights_and_bad_backends_are_refused(features):
+    a, b = small_model(features, seed=0), small_model(features, seed=0)
+    assert fingerprint(a) == fingerprint(b)
+    assert fingerprint(a) == fingerprint(small_model(features, seed=0).answer_with(4, True, 4))  # answers: not the step
+    with torch.no_grad():
+        next(b.core.parameters())[0, 0] += 1e-6
+    assert fingerprint(a) != fingerprint(b)
+    with pytest.raises(ValueError, match="rollout_backend='tensorrt': must be one of torchscript | aot"):
+        backend_checked("tensorrt")
+    kinematic = small_model(features, update="kinematic", frame="global")
+    with pytest.raises(ValueError, match="rollout_backend=aot: a kinematic model"):
+        AotSteps(log=None).step_of(kinematic)
