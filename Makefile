@@ -92,8 +92,9 @@ stability:  ## stability matrix at the extremes (reports/stability/; ~9 min)
 bench-fea:  ## FEA benchmark table + plot (reports/bench_fea/)
 	$(PY) scripts/bench_fea.py --out reports/bench_fea
 
-bench-rollout:  ## learned rollout ms vs symmetry copies and designs per call, 1 thread (CKPT=runs/train/best.pt; reports/bench_rollout/; idle machine)
-	$(PY) scripts/bench_rollout.py --checkpoint $(or $(CKPT),runs/train/best.pt) --batch $(or $(BATCH),8,32,128) --out reports/bench_rollout
+bench-rollout:  ## learned rollout ms vs symmetry copies and designs per call, 1 thread (CKPT=runs/train/best.pt; BACKEND=torchscript,aot; SETTINGS=1:false,..; reports/bench_rollout/; idle machine)
+	$(PY) scripts/bench_rollout.py --checkpoint $(or $(CKPT),runs/train/best.pt) --batch $(or $(BATCH),8,32,128) \
+		--backend $(or $(BACKEND),torchscript) $(if $(SETTINGS),--settings $(SETTINGS)) --out $(or $(BENCH),reports/bench_rollout)
 
 tradeoff:  ## speed/accuracy trade (PANEL=reduced|full, CHECKPOINTS=a.pt,.., INSTALL=1: conf/solver/tradeoff_table.csv, RESUME=1)
 	$(PY) scripts/tradeoff.py --panel $(PANEL) --out $(TRADEOFF_OUT) $(if $(CHECKPOINTS),--checkpoints $(CHECKPOINTS)) \

@@ -21,6 +21,7 @@ from learn.dataset import episode_paths, load_features
 from learn.features import EpisodeFeatures, rebuild_all_points
 from learn.model import Simulator
 from learn.roll import ONE_KIND, ROLLED, roll
+from learn.aot import backend_checked
 from learn.rollout import (answer_unroll, compile_rollout, graph_inputs, input_floor, plain_inputs, reference,
                            rollout)
 from learn.validity import check, thresholds
@@ -184,11 +185,13 @@ def busy(load: float, threads: int, cpus: int | None = None) -> bool:
     return load > max(cpus or os.cpu_count() or 1, threads) + 0.5
 
 
-def timings(model: Simulator, features: list[EpisodeFeatures], repeats: int) -> dict:
-    """Seconds per design: one design at a time (compiled and eager) and all designs as one graph (compiled, over
-    their count); the machine's 1-minute load average after them (`busy` says whether they are upper bounds)."""
+def timings(model: Simulator, features: list[EpisodeFeatures], repeats: int, backend: str = "torchscript",
+            cache: str | None = None) -> dict:
+    """Seconds per design: one design at a time (compiled by `backend`, learn.rollout.compile_rollout, and eager) and
+    all designs as one graph (compiled, over their count); the machine's 1-minute load average after them (`busy`
+    says whether they are upper bounds)."""
     start = time.perf_counter()
-    compiled = compile_rollout(model, features[0])
+    compiled = compile_rollout(model, features[0], backend, cache)
     compile_s = time.perf_counter() - start
     with torch.inference_mode():
         for f in features:  # the compiled rollout must give the eager numbers, to float32 rounding grown over the
@@ -237,6 +240,7 @@ def split_paths(split: str, stored: dict[str, list[str]], data_dir: Path, source
 
 def evaluate(cfg: DictConfig) -> dict:
     torch.set_num_threads(int(cfg.threads))
+    backend = backend_checked(cfg.get("rollout_backend", "torchscript"))  # refused before any rollout
     sources = ensemble.checkpoint_paths(cfg.checkpoint)
     model, ckpt = ensemble.load(sources)
     model.answer_with(cfg.rollout_rotations, cfg.rollout_mirror, cfg.rollout_lattice_turns)
@@ -273,7 +277,7 @@ def evaluate(cfg: DictConfig) -> dict:
                if f.actuators in ONE_KIND else {})})
         rollouts.append(r)
 
-    times = timings(model, features, int(cfg.timing_repeats))
+    times = timings(model, features, int(cfg.timing_repeats), backend, cfg.get("aot_cache"))
     rollout_s, batched_s = times["compiled"], times["batched"]
     fea_s = float(np.nanmean([f.fea_seconds for f in features])) if any(
         np.isfinite(f.fea_seconds) for f in features) else float("nan")
@@ -283,6 +287,7 @@ def evaluate(cfg: DictConfig) -> dict:
         "rollout_ms_per_design_eager": 1e3 * times["eager"],
         "rollout_ms_per_design_batched": 1e3 * batched_s,
         "compile_s": times["compile"],
+        "rollout_backend": backend,
         "fea_s_per_episode": fea_s,
         "speedup": fea_s / rollout_s,
         "speedup_batched": fea_s / batched_s,
@@ -295,7 +300,8 @@ def evaluate(cfg: DictConfig) -> dict:
         "checkpoint": sources[0] if len(sources) == 1 else sources, "split": cfg.split, "data_dir": str(data_dir),
         "model": {k: v for k, v in model.args.items() if k != "pca"}, "n_parameters": model.n_parameters,
         "timing": "rollout_ms_per_design: median over designs of the median wall time of one design's rollout "
-                  "(initial graph -> rebuilt points of every frame), TorchScript-compiled once per model (compile_s), "
+                  "(initial graph -> rebuilt points of every frame), compiled once per model (compile_s) by "
+                  "rollout_backend (torchscript: a traced rollout; aot: each step an AOTInductor package, learn/aot.py), "
                   "on `threads` CPU threads; _eager: plain PyTorch; _batched: all designs rolled out together as one "
                   "graph (compiled, learn.rollout.rollout_many's union), the call's time over their count. "
                   "FEA: mean of the episodes' provenance wall_s.total",
@@ -340,7 +346,8 @@ def markdown(report: dict, with_designs: bool = True) -> str:
           for key, label in (("representation_floor", "representation floor"), ("input_floor", "input floor (PCA)"))
           if key in report),
         "",
-        f"rollout {report['rollout_ms_per_design']:.2f} ms/design ({report['threads']} thread; eager "
+        f"rollout {report['rollout_ms_per_design']:.2f} ms/design ({report.get('rollout_backend', 'torchscript')}, "
+        f"{report['threads']} thread; eager "
         f"{report['rollout_ms_per_design_eager']:.2f} ms), batched "
         f"{report['rollout_ms_per_design_batched']:.3f} ms/design; FEA {report['fea_s_per_episode']:.3g} s/episode; "
         f"speed-up {report['speedup']:.3g}x (batched {report['speedup_batched']:.3g}x); "

@@ -1,8 +1,8 @@
 """Learned rollout wall time vs symmetry copies and batch size: `make bench-rollout CKPT=...` -> reports/bench_rollout/.
 
 --checkpoint a.pt,b.pt times an ensemble (learn.ensemble: every member with the setting's copies).
-Per setting (rotations x mirror x lattice labellings, learn.rollout.answer_unroll): the TorchScript-compiled rollout
-of one design from frame 0 to the rebuilt points of every frame, on one thread; the median over designs (the
+Per backend (--backend: torchscript, the traced rollout; aot, every step an AOTInductor package, learn/aot.py) and
+setting (rotations x mirror x lattice labellings, learn.rollout.answer_unroll): the compiled rollout of one design from frame 0 to the rebuilt points of every frame, on one thread; the median over designs (the
 checkpoint's test split) of the median of --repeats calls (learn.evaluate.median_seconds): the latency of one answer.
 With --batch 8,32,...: also the rollout of that many designs at once (learn.rollout.rollout_many's disjoint union, the
 test designs taken in turn), its median call time divided by the count: the cost per design of scoring many candidates.
@@ -26,6 +26,7 @@ import torch  # noqa: E402
 
 from learn import ensemble  # noqa: E402
 from learn.dataset import load_features  # noqa: E402
+from learn.aot import backend_checked  # noqa: E402
 from learn.evaluate import median_seconds  # noqa: E402
 from learn.rollout import compile_rollout, graph_inputs  # noqa: E402
 from tradeoff import machine  # noqa: E402  (scripts/tradeoff.py)
@@ -56,9 +57,14 @@ def main() -> None:
                    default="1:false,2:false,4:false,1:true,2:true,4:true,8:true,1:false:2,1:false:4,1:true:4")
     p.add_argument("--batch", default="", help="designs per call beside the one-design latency, comma-separated "
                    "(e.g. 8,32,128)")
+    p.add_argument("--backend", default="torchscript",
+                   help="compile_rollout backends timed, comma-separated: torchscript | aot (aot: ~1 min to compile "
+                        "per model, setting and batch size the first time, then from its cache)")
+    p.add_argument("--aot-cache", help="where aot keeps its packages (default: learn.aot.default_cache)")
     p.add_argument("--out", default="reports/bench_rollout")
     a = p.parse_args()
     torch.set_num_threads(1)
+    backends = [backend_checked(b) for b in a.backend.split(",")]
     sources = a.checkpoint.split(",")
     model, ckpt = ensemble.load(sources)
     members = len(ensemble.members_of(model))
@@ -72,19 +78,21 @@ def main() -> None:
     if any(b < 2 for b in batches):
         raise SystemExit(f"--batch {a.batch}: every count must be >= 2 (1, one design, is always timed)")
     rows = []
-    for n, mirror, turns in settings(a.settings):
-        compiled = compile_rollout(model.answer_with(n, mirror, turns), features[0])
+    for backend, (n, mirror, turns) in ((b, s) for s in settings(a.settings) for b in backends):
+        compiled = compile_rollout(model.answer_with(n, mirror, turns), features[0], backend, a.aot_cache)
         ms = [1e3 * median_seconds(lambda f=f: compiled(*graph_inputs(f)), a.repeats) for f in features]
-        row = {"members": members, "rotations": n, "mirror": mirror, "lattice_turns": turns,
+        row = {"backend": backend, "members": members, "rotations": n, "mirror": mirror, "lattice_turns": turns,
                "copies": members * n * (2 if mirror else 1) * turns}
         rows.append({**row, "batch": 1, "ms_per_design": float(np.median(ms)), "ms_min": float(np.min(ms)),
                      "ms_max": float(np.max(ms))})
         for b in batches:
             inputs = graph_inputs([features[i % len(features)] for i in range(b)])
+            with torch.inference_mode():
+                compiled(*inputs)  # compiled here (a union of b designs has its own trace or package), not timed
             per_design = 1e3 * median_seconds(lambda: compiled(*inputs), max(3, a.repeats // 4)) / b
             rows.append({**row, "batch": b, "ms_per_design": per_design, "ms_min": per_design, "ms_max": per_design})
         for r in rows[-1 - len(batches):]:
-            print(f"rotations {n} mirror {mirror} lattice turns {turns} batch {r['batch']}: "
+            print(f"{backend}: rotations {n} mirror {mirror} lattice turns {turns} batch {r['batch']}: "
                   f"{r['ms_per_design']:.2f} ms/design", flush=True)
     load_after = "/".join(f"{x:.2f}" for x in os.getloadavg())
 
@@ -96,10 +104,10 @@ def main() -> None:
              f"Command: `{' '.join([Path(sys.executable).name, *sys.argv])}`; {len(features)} test designs, "
              f"median of {a.repeats} calls each, then the median over designs (batch 1); batch b > 1: one call rolls "
              f"b designs out together, the median of {max(3, a.repeats // 4)} calls / b.", "",
-             "| members | rotations | mirror | lattice turns | copies | batch | ms per design (median) "
+             "| backend | members | rotations | mirror | lattice turns | copies | batch | ms per design (median) "
              "| min / max over designs |",
-             "|---|---|---|---|---|---|---|---|"]
-    lines += [f"| {r['members']} | {r['rotations']} | {r['mirror']} | {r['lattice_turns']} | {r['copies']} | "
+             "|---|---|---|---|---|---|---|---|---|"]
+    lines += [f"| {r['backend']} | {r['members']} | {r['rotations']} | {r['mirror']} | {r['lattice_turns']} | {r['copies']} | "
               f"{r['batch']} | {r['ms_per_design']:.2f} | "
               + (f"{r['ms_min']:.2f} / {r['ms_max']:.2f} |" if r["batch"] == 1 else "|") for r in rows]
     atomic.write_text(out / "rollout.md", "\n".join(lines) + "\n")
@@ -112,9 +120,11 @@ def main() -> None:
     single = [r for r in rows if r["batch"] == 1]
     fig, axes = plt.subplots(1, 2 if batches else 1, figsize=(11 if batches else 6, 4), squeeze=False)
     ax = axes[0, 0]
-    for (mirror, turns), marker in zip(sorted({(r["mirror"], r["lattice_turns"]) for r in single}), "osD^v<>p"):
-        sel = [r for r in single if (r["mirror"], r["lattice_turns"]) == (mirror, turns)]
-        label = "rotations" + (" + mirror" if mirror else "") + (f" x {turns} labellings" if turns > 1 else "")
+    groups = sorted({(r["backend"], r["mirror"], r["lattice_turns"]) for r in single})
+    for (backend, mirror, turns), marker in zip(groups, "osD^v<>p" * 4):
+        sel = [r for r in single if (r["backend"], r["mirror"], r["lattice_turns"]) == (backend, mirror, turns)]
+        label = (f"{backend}: rotations" + (" + mirror" if mirror else "")
+                 + (f" x {turns} labellings" if turns > 1 else ""))
         ax.plot([r["copies"] for r in sel], [r["ms_per_design"] for r in sel], marker + "-", label=label)
     ax.axhline(TARGET_MS, color="k", ls="--", lw=0.8, label=f"target {TARGET_MS:g} ms")
     ax.set(xlabel="copies averaged per answer", ylabel="rollout ms per design (1 thread)",
@@ -123,10 +133,10 @@ def main() -> None:
     ax.legend()
     if batches:
         ax = axes[0, 1]
-        for key in dict.fromkeys((r["rotations"], r["mirror"], r["lattice_turns"]) for r in rows):
-            sel = [r for r in rows if (r["rotations"], r["mirror"], r["lattice_turns"]) == key]
+        for key in dict.fromkeys((r["backend"], r["rotations"], r["mirror"], r["lattice_turns"]) for r in rows):
+            sel = [r for r in rows if (r["backend"], r["rotations"], r["mirror"], r["lattice_turns"]) == key]
             ax.plot([r["batch"] for r in sel], [r["ms_per_design"] for r in sel], "o-",
-                    label=f"{sel[0]['copies']} cop{'y' if sel[0]['copies'] == 1 else 'ies'}")
+                    label=f"{key[0]}: {sel[0]['copies']} cop{'y' if sel[0]['copies'] == 1 else 'ies'}")
         ax.axhline(TARGET_MS, color="k", ls="--", lw=0.8, label=f"target {TARGET_MS:g} ms")
         ax.set(xscale="log", yscale="log", xlabel="designs per call (one disjoint union)",
                ylabel="rollout ms per design (1 thread)", title="many designs at once")

@@ -3,6 +3,7 @@ designs rolled out together, an answer averaged over mirror and lattice copies (
 strides than a package's first call), an ensemble -- keeps its packages on disk so that a second stepper compiles
 nothing, tells weights apart, and refuses what it cannot compile with the field named."""
 import copy
+import re
 
 import pytest
 import torch
@@ -93,7 +94,7 @@ def test_a_package_is_keyed_by_the_weights_and_bad_backends_are_refused(features
     with torch.no_grad():
         next(b.core.parameters())[0, 0] += 1e-6
     assert fingerprint(a) != fingerprint(b)
-    with pytest.raises(ValueError, match="rollout_backend='tensorrt': must be one of torchscript | aot"):
+    with pytest.raises(ValueError, match=re.escape("rollout_backend='tensorrt': must be one of torchscript | aot")):
         backend_checked("tensorrt")
     kinematic = small_model(features, update="kinematic", frame="global")
     with pytest.raises(ValueError, match="rollout_backend=aot: a kinematic model"):

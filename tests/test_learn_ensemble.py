@@ -105,7 +105,8 @@ def test_bench_rollout_times_an_ensemble_with_every_members_copies(members, data
                         "--out", str(tmp_path)], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     header, row = (tmp_path / "rollout.csv").read_text().splitlines()
-    assert header.startswith("members,rotations,mirror,lattice_turns,copies") and row.startswith("2,1,True,1,4,")
+    assert header.startswith("backend,members,rotations,mirror,lattice_turns,copies")
+    assert row.startswith("torchscript,2,1,True,1,4,")
 
 
 @pytest.mark.parametrize("value", ["", [], ["a.pt", ""]])

@@ -236,6 +236,11 @@ def test_evaluate_writes_the_report(trained, tmp_path):
     with pytest.raises(ValueError, match="flag_error_rel=1.5: allowed is a fraction of the design size in"):
         evaluate(cfg_for("evaluate", [f"checkpoint={run / 'best.pt'}", f"out_dir={tmp_path / 'x'}",
                                       "flag_error_rel=1.5"]))
+    assert on_disk["rollout_backend"] == "torchscript"
+    with pytest.raises(ValueError, match="rollout_backend='onnx': must be one of"):
+        evaluate(cfg_for("evaluate", [f"checkpoint={run / 'best.pt'}", f"out_dir={tmp_path / 'y'}",
+                                      "rollout_backend=onnx"]))
+    assert not (tmp_path / "y").exists()  # refused before anything was written
 
 
 def test_evaluate_reports_the_roll_of_every_all_one_kind_design_beside_the_feas(trained, tmp_path):

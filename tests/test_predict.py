@@ -136,10 +136,11 @@ def test_bench_rollout_writes_a_row_per_setting_and_refuses_a_bad_one(trained, d
                        text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     rows = (tmp_path / "b" / "rollout.csv").read_text().splitlines()
-    assert rows[0].startswith("members,rotations,mirror,lattice_turns,copies,batch,ms_per_design") and len(rows) == 7
-    assert rows[3].startswith("1,2,True,1,4,1,") and rows[4].startswith("1,2,True,1,4,3,")
-    assert rows[5].startswith("1,1,False,4,4,1,") and rows[6].startswith("1,1,False,4,4,3,")
-    assert all(float(row.split(",")[6]) > 0 for row in rows[1:])
+    assert rows[0].startswith("backend,members,rotations,mirror,lattice_turns,copies,batch,ms_per_design")
+    assert len(rows) == 7
+    assert rows[3].startswith("torchscript,1,2,True,1,4,1,") and rows[4].startswith("torchscript,1,2,True,1,4,3,")
+    assert rows[5].startswith("torchscript,1,1,False,4,4,1,") and rows[6].startswith("torchscript,1,1,False,4,4,3,")
+    assert all(float(row.split(",")[7]) > 0 for row in rows[1:])
     assert (tmp_path / "b" / "rollout.png").stat().st_size > 0
     assert "Machine:" in (tmp_path / "b" / "rollout.md").read_text()
     for setting in ("0:false", "1:false:3", "1"):
@@ -147,6 +148,8 @@ def test_bench_rollout_writes_a_row_per_setting_and_refuses_a_bad_one(trained, d
         assert bad.returncode != 0 and "--settings" in bad.stderr
     bad = subprocess.run(base + ["--settings", "1:false", "--batch", "1"], capture_output=True, text=True, timeout=600)
     assert bad.returncode != 0 and "--batch 1: every count must be >= 2" in bad.stderr
+    bad = subprocess.run(base + ["--backend", "torchscript,onnx"], capture_output=True, text=True, timeout=600)
+    assert bad.returncode != 0 and "rollout_backend='onnx': must be one of torchscript | aot" in bad.stderr
 
 
 def test_first_step_probe_writes_a_row_and_refuses_a_bad_frame_count(trained, data_dir, tmp_path):  # noqa: F811
