@@ -12,7 +12,8 @@ Modules (each imports torch, numpy, h5py, meshio and data_schema only; never dol
     train       python -m learn.train (conf/train.yaml); checkpoint: load/save (weights_only)
     rollout     rollout(model, episode, steps=10) -> Rollout (answers averaged over rotations / the mirror when the
                 model says so: answer_unroll); rollout_many(model, episodes): many designs in one pass;
-                compile_rollout for timing/deployment
+                compile_rollout for timing/deployment (backend torchscript | aot)
+    aot         every step of a rollout an AOTInductor C++ package, cached on disk by model fingerprint and shapes
     shapes      the rebuilt points as a coarse hex mesh (one per joint, two per beam) and hex volumes
     validity    check(model, rollout) -> Verdict (face dislocation, out-of-training-range features)
     evaluate    python -m learn.evaluate (conf/evaluate.yaml): report.json, report.md, plots

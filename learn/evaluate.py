@@ -301,7 +301,8 @@ def evaluate(cfg: DictConfig) -> dict:
         "model": {k: v for k, v in model.args.items() if k != "pca"}, "n_parameters": model.n_parameters,
         "timing": "rollout_ms_per_design: median over designs of the median wall time of one design's rollout "
                   "(initial graph -> rebuilt points of every frame), compiled once per model (compile_s) by "
-                  "rollout_backend (torchscript: a traced rollout; aot: each step an AOTInductor package, learn/aot.py), "
+                  "rollout_backend (torchscript: a traced rollout; aot: each step an AOTInductor package, "
+                  "learn/aot.py), "
                   "on `threads` CPU threads; _eager: plain PyTorch; _batched: all designs rolled out together as one "
                   "graph (compiled, learn.rollout.rollout_many's union), the call's time over their count. "
                   "FEA: mean of the episodes' provenance wall_s.total",

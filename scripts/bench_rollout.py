@@ -2,8 +2,8 @@
 
 --checkpoint a.pt,b.pt times an ensemble (learn.ensemble: every member with the setting's copies).
 Per backend (--backend: torchscript, the traced rollout; aot, every step an AOTInductor package, learn/aot.py) and
-setting (rotations x mirror x lattice labellings, learn.rollout.answer_unroll): the compiled rollout of one design from frame 0 to the rebuilt points of every frame, on one thread; the median over designs (the
-checkpoint's test split) of the median of --repeats calls (learn.evaluate.median_seconds): the latency of one answer.
+setting (rotations x mirror x lattice labellings, learn.rollout.answer_unroll): the compiled rollout of one design
+from frame 0 to the rebuilt points of every frame, on one thread; the median over designs (the checkpoint's test split) of the median of --repeats calls (learn.evaluate.median_seconds): the latency of one answer.
 With --batch 8,32,...: also the rollout of that many designs at once (learn.rollout.rollout_many's disjoint union, the
 test designs taken in turn), its median call time divided by the count: the cost per design of scoring many candidates.
 Writes rollout.csv, rollout.md (machine, load, command) and rollout.png (ms vs copies and vs batch size, the 5 ms
@@ -107,8 +107,8 @@ def main() -> None:
              "| backend | members | rotations | mirror | lattice turns | copies | batch | ms per design (median) "
              "| min / max over designs |",
              "|---|---|---|---|---|---|---|---|---|"]
-    lines += [f"| {r['backend']} | {r['members']} | {r['rotations']} | {r['mirror']} | {r['lattice_turns']} | {r['copies']} | "
-              f"{r['batch']} | {r['ms_per_design']:.2f} | "
+    lines += [f"| {r['backend']} | {r['members']} | {r['rotations']} | {r['mirror']} | {r['lattice_turns']} | "
+              f"{r['copies']} | {r['batch']} | {r['ms_per_design']:.2f} | "
               + (f"{r['ms_min']:.2f} / {r['ms_max']:.2f} |" if r["batch"] == 1 else "|") for r in rows]
     atomic.write_text(out / "rollout.md", "\n".join(lines) + "\n")
 
