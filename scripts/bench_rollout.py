@@ -3,7 +3,8 @@
 --checkpoint a.pt,b.pt times an ensemble (learn.ensemble: every member with the setting's copies).
 Per backend (--backend: torchscript, the traced rollout; aot, every step an AOTInductor package, learn/aot.py) and
 setting (rotations x mirror x lattice labellings, learn.rollout.answer_unroll): the compiled rollout of one design
-from frame 0 to the rebuilt points of every frame, on one thread; the median over designs (the checkpoint's test split) of the median of --repeats calls (learn.evaluate.median_seconds): the latency of one answer.
+from frame 0 to the rebuilt points of every frame, on one thread; the median over designs (the checkpoint's test split)
+of the median of --repeats calls (learn.evaluate.median_seconds): the latency of one answer.
 With --batch 8,32,...: also the rollout of that many designs at once (learn.rollout.rollout_many's disjoint union, the
 test designs taken in turn), its median call time divided by the count: the cost per design of scoring many candidates.
 Writes rollout.csv, rollout.md (machine, load, command) and rollout.png (ms vs copies and vs batch size, the 5 ms
