@@ -1,6 +1,7 @@
 """Rollout: advance a design's initial graph step by step and rebuild points comparable to the FEA nodes."""
 from __future__ import annotations
 
+import functools
 import warnings
 from dataclasses import dataclass, replace
 
@@ -37,9 +38,11 @@ def unroll(model: Simulator, joint_state: torch.Tensor, beam_state: torch.Tensor
     return torch.stack(joints), torch.stack(beams)
 
 
+@functools.lru_cache(maxsize=64)
 def _group(block, n: int, mirror: bool, dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The n rotations about z (evenly spread over a turn, the first 0), and with `mirror` each also after the
-    mirror, as state matrices [g, S, S] (x @ A), their inverses, and the bc matrices [g, D, D]."""
+    mirror, as state matrices [g, S, S] (x @ A), their inverses, and the bc matrices [g, D, D]. Built once per
+    argument set (~10 ms of numpy each, which an uncompiled answer over copies paid at every call; read only)."""
     mirrors = (False, True) if mirror else (False,)
     elements = [(m, rotation_z(a)) for m in mirrors for a in rotation_angles(n)]
     flip = lambda m, M, size: M if m else np.eye(size)  # noqa: E731
@@ -47,15 +50,22 @@ def _group(block, n: int, mirror: bool, dtype) -> tuple[torch.Tensor, torch.Tens
     forward = [flip(m, state_mirror(block), S) @ state_rotation(block, R) for m, R in elements]
     inverse = [state_rotation(block, R.T) @ flip(m, state_mirror(block), S) for m, R in elements]
     bc = [flip(m, term_mirror(block.bc), D) @ term_rotation(block.bc, R) for m, R in elements]
-    return tuple(torch.as_tensor(np.stack(x), dtype=dtype) for x in (forward, inverse, bc))
+    return _constants(forward, inverse, bc, dtype=dtype)
 
 
+def _constants(*arrays, dtype) -> tuple[torch.Tensor, ...]:
+    """Stacked arrays as tensors made outside inference mode (kept in a cache, they may meet a trace or autograd)."""
+    with torch.inference_mode(False):
+        return tuple(torch.as_tensor(np.stack(x), dtype=dtype) for x in arrays)
+
+
+@functools.lru_cache(maxsize=64)
 def _lattice(block, turns: int, dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The labellings of model.rollout_lattice_turns (learn.symmetry.LATTICE_QUARTER_TURNS) as state matrices
     [L, 2, S, S] (x @ A; [:, 0] for a block that keeps its direction, [:, 1] for one that runs the other way), their
-    inverses, and the bc matrices [L, 2, D, D]."""
+    inverses, and the bc matrices [L, 2, D, D]. Built once per argument set, as _group."""
     state, bc = zip(*(lattice_matrices(block, k) for k in LATTICE_QUARTER_TURNS[turns]))
-    return tuple(torch.as_tensor(np.stack(x), dtype=dtype) for x in (state, np.linalg.inv(state), bc))
+    return _constants(state, np.linalg.inv(state), bc, dtype=dtype)
 
 
 def lattice_reversals(turns: int, along_i: torch.Tensor) -> torch.Tensor:
