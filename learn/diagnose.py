@@ -33,7 +33,7 @@ from omegaconf import DictConfig
 
 from data_schema import atomic
 from learn import checkpoint
-from learn.dataset import GraphSet, load_features
+from learn.dataset import GraphSet, design_paths, load_features
 from learn.features import BEAM_POINTS, JOINT_POINTS, rebuild_all_points
 from learn.metrics import beam_chords, fea_points, max_per_item, point_owner
 from learn.model import Simulator
@@ -222,7 +222,7 @@ def diagnose(cfg: DictConfig) -> dict:
         names = sorted(ckpt["split"][split])[: int(cfg.max_designs)] if cfg.max_designs else ckpt["split"][split]
         if not names:
             continue
-        data = GraphSet.build(load_features([data_dir / n for n in names]))
+        data = GraphSet.build(load_features(design_paths(names, data_dir, ckpt["config"])))
         report["splits"][split] = {"n_designs": len(names), **medians(diagnose_set(model, data))}
         log.info("%s: %d designs, final rollout error median %.2f %%", split, len(names),
                  100 * report["splits"][split]["rollout"][-1])

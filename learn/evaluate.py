@@ -17,7 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from data_schema import atomic
 from learn import ensemble
-from learn.dataset import episode_paths, load_features
+from learn.dataset import design_paths, episode_paths, load_features
 from learn.features import EpisodeFeatures, rebuild_all_points
 from learn.model import Simulator
 from learn.roll import ONE_KIND, ROLLED, roll
@@ -221,10 +221,12 @@ def flag_error_rel_checked(value, name: str = "flag_error_rel") -> float:
     return float(value)
 
 
-def split_paths(split: str, stored: dict[str, list[str]], data_dir: Path, source: str) -> list[Path]:
+def split_paths(split: str, stored: dict[str, list[str]], data_dir: Path, source: str,
+                config: dict | None = None) -> list[Path]:
     """Episode paths of `split`: 'all' (every *.h5 in data_dir, e.g. designs generated apart from training),
     'unseen' (every *.h5 in data_dir the checkpoint did not train on: its val and test designs and any generated
-    since), one split stored in the checkpoint, or several joined by '+' (val+test: the pinned held-out designs)."""
+    since), one split stored in the checkpoint, or several joined by '+' (val+test: the pinned held-out designs); a
+    stored split's designs read from the checkpoint config's train_extra_dirs are found there (design_paths)."""
     if split == "all":
         return episode_paths(data_dir)
     if split == "unseen":
@@ -235,7 +237,7 @@ def split_paths(split: str, stored: dict[str, list[str]], data_dir: Path, source
     if unknown:
         raise ValueError(f"split={split!r}: allowed are {sorted(stored)} (stored in {source}), several of them "
                          "joined by '+', 'all' (every *.h5 in data_dir) or 'unseen' (those not trained on)")
-    return [data_dir / e for n in dict.fromkeys(names) for e in stored[n]]
+    return design_paths([e for n in dict.fromkeys(names) for e in stored[n]], data_dir, config)
 
 
 def evaluate(cfg: DictConfig) -> dict:
@@ -246,7 +248,7 @@ def evaluate(cfg: DictConfig) -> dict:
     model.answer_with(cfg.rollout_rotations, cfg.rollout_mirror, cfg.rollout_lattice_turns)
     limits = thresholds(OmegaConf.to_container(cfg.validity), model)  # those of the model's frame
     data_dir = Path(cfg.data_dir or ckpt["config"]["data_dir"])
-    paths = split_paths(cfg.split, ckpt["split"], data_dir, sources[0])
+    paths = split_paths(cfg.split, ckpt["split"], data_dir, sources[0], ckpt["config"])
     if not paths:
         raise ValueError(f"split {cfg.split!r} of {sources[0]} is empty")
     features = load_features(paths)

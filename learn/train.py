@@ -16,8 +16,8 @@ from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from learn import checkpoint
 from learn.conditions import envelope
-from learn.dataset import (GraphSet, TurnedSet, augment, augment_angles, episode_paths, extend_split, load_features,
-                           split_missing_checked, split_names)
+from learn.dataset import (GraphSet, TurnedSet, augment, augment_angles, episode_paths, extend_split,
+                           extra_dirs_checked, load_features, split_missing_checked, split_names)
 from learn.features import EpisodeFeatures
 from learn.gn import dropout_checked, fraction_checked
 from learn.metrics import multistep_loss, rollout_errors
@@ -208,10 +208,8 @@ def training_extra(dirs, names: set[str]) -> list[EpisodeFeatures]:
     """conf/train.yaml train_extra_dirs: the episodes of these directories, all training designs (never held out),
     e.g. extra designs of one region of the design space. Their file names must differ from data_dir's and each
     other's (a split holds names): generate them with another `start=`."""
-    if isinstance(dirs, (str, Path)):
-        raise ValueError(f"train_extra_dirs={dirs!r}: must be a list of directories, e.g. '[data/ds_large]'")
     extra: list[EpisodeFeatures] = []
-    for d in dirs:
+    for d in extra_dirs_checked(dirs):
         for f in load_features(episode_paths(d)):
             if f.name in names:
                 raise ValueError(f"train_extra_dirs: {d}/{f.name} has the name of an episode already read (data_dir "
@@ -336,8 +334,9 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
         return resumed["summary"]
 
     init = None if resumed or not cfg.get("init_from") else checkpoint.load(cfg.init_from)
+    extra_dirs = extra_dirs_checked(cfg.get("train_extra_dirs"))  # before any episode is read
     features = load_features(episode_paths(cfg.data_dir))
-    extra = training_extra(cfg.get("train_extra_dirs") or [], {f.name for f in features})
+    extra = training_extra(extra_dirs, {f.name for f in features})
     by_name = {f.name: f for f in features + extra}
     if resumed:
         split = resumed["split"]

@@ -457,7 +457,18 @@ def test_train_extra_dirs_add_training_designs_after_the_cut_and_resume_with_the
         train(cfg_for("train", tiny(data_dir, tmp_path / "twice", "epochs=1", f"train_extra_dirs=[{data_dir}]")))
     with pytest.raises(ValueError, match="train_extra_dirs='x': must be a list"):
         train(cfg_for("train", tiny(data_dir, tmp_path / "str", "epochs=1", "train_extra_dirs=x")))
-    assert not (tmp_path / "twice" / "last.pt").exists() and not (tmp_path / "str" / "last.pt").exists()
+    with pytest.raises(FileNotFoundError, match="train_extra_dirs: .*nowhere'\\] not found"):
+        train(cfg_for("train", tiny(data_dir, tmp_path / "gone", "epochs=1",
+                                    f"train_extra_dirs=[{tmp_path / 'nowhere'}]")))
+    assert not any((tmp_path / r / "last.pt").exists() for r in ("twice", "str", "gone"))
+    # the checkpoint's training designs are found where they were read: data_dir and the extra directory
+    report = evaluate(cfg_for("evaluate", [f"checkpoint={tmp_path / 'run' / 'best.pt'}", "split=train",
+                                           f"out_dir={tmp_path / 'ev'}", "timing_repeats=1", "plots=false"]))
+    assert sorted(d["name"] for d in report["designs"]) == ["ep000.h5", "ep200.h5"]
+    from learn.diagnose import diagnose
+    found = diagnose(cfg_for("diagnose", [f"checkpoint={tmp_path / 'run' / 'best.pt'}", "splits=[train]",
+                                          f"out_dir={tmp_path / 'dg'}"]))
+    assert found["splits"]["train"]["n_designs"] == 2
 
 
 @pytest.mark.parametrize("text, message", [
