@@ -8,6 +8,7 @@ DEB_PACKAGES=(
   python3-dolfinx python3-gmsh python3-mpi4py python3-petsc4py python3-h5py python3-meshio
   python3-venv python3-pip python3-scipy python3-matplotlib python3-tqdm
   openmpi-bin libopenblas0 make git
+  g++ python3-dev  # the C++ compiler and headers learn/aot.py's AOTInductor packages are built with (FFCx's JIT too)
 )
 SUDO=""
 if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
