@@ -62,9 +62,9 @@ reference-train:  ## the full-scale reference training (conf/experiment/referenc
 	$(PY) -m learn.train +experiment=reference $(ARGS)
 
 REF ?= reports/reference
-reference-evaluate:  ## CKPT (or CKPT='[a.pt,b.pt]', an ensemble) on the 102 held-out designs: 52 pinned of data/ds_default + data/ds_heldout -> REF/102 (REF=reports/reference)
-	$(PY) -m learn.evaluate "checkpoint=$(or $(CKPT),runs/reference/best.pt)" data_dir=data/ds_default split=val+test plots=false threads=1 out_dir=$(REF)/52 $(ARGS)
-	$(PY) -m learn.evaluate "checkpoint=$(or $(CKPT),runs/reference/best.pt)" data_dir=data/ds_heldout split=all timing_repeats=1 plots=false threads=1 out_dir=$(REF)/fresh $(ARGS)
+reference-evaluate:  ## CKPT (or CKPT='[a.pt,b.pt]', an ensemble) on the 102 held-out designs: 52 pinned of data/ds_default + data/ds_heldout -> REF/102 (REF=reports/reference; timed as deployed, BACKEND=aot since session 38)
+	$(PY) -m learn.evaluate "checkpoint=$(or $(CKPT),runs/reference/best.pt)" data_dir=data/ds_default split=val+test plots=false threads=1 rollout_backend=$(or $(BACKEND),aot) out_dir=$(REF)/52 $(ARGS)
+	$(PY) -m learn.evaluate "checkpoint=$(or $(CKPT),runs/reference/best.pt)" data_dir=data/ds_heldout split=all timing_repeats=1 plots=false threads=1 rollout_backend=$(or $(BACKEND),aot) out_dir=$(REF)/fresh $(ARGS)
 	$(PY) -m learn.combine 'reports=[$(REF)/52,$(REF)/fresh]' out_dir=$(REF)/102
 
 compare:  ## design-by-design comparison of reports against the first (REPORTS=a,b[,c]; LABELS=x,y[,z]; SIZES=n1,n2,..: a scaling fit; reports/compare/)
