@@ -5,9 +5,10 @@ dispatch of each; `torch.export` + `torch._inductor.aoti_compile_and_package` tu
 (the pointwise work fused, the matrix products and the solve as library calls) that a rollout calls once per step.
 Same numbers (float32 rounding; learn.evaluate checks every compiled rollout against the eager one).
 
-A package is compiled once per model and input shapes (~40-60 s on 2 cores) and kept on disk under a key of the
-model's weights, statistics and args, the shapes and the torch version, so a design session or the next evaluation
-loads it in milliseconds. Kinematic models are not compiled this way (their placement order is a Python tree).
+A package (~6 MB: the code and the weights) is compiled once per model and input shapes (20-60 s on 2 cores) and kept
+on disk under a key of the model's weights, statistics and args, the shapes and the torch version, so a design
+session or the next evaluation loads it in milliseconds; removing the cache directory only costs recompiling.
+Kinematic models are not compiled this way (their placement order is a Python tree).
 """
 from __future__ import annotations
 
@@ -145,6 +146,7 @@ class AotSteps:
                 os.close(fd)
                 try:
                     torch._inductor.aoti_compile_and_package(exported, package_path=tmp)
+                    os.chmod(tmp, 0o644)  # mkstemp's 0600 would keep a shared cache from other users
                     os.replace(tmp, path)  # atomic: a package is whole or absent
                 finally:
                     if os.path.exists(tmp):
