@@ -6,7 +6,8 @@ dispatch of each; `torch.export` + `torch._inductor.aoti_compile_and_package` tu
 Same numbers (float32 rounding; learn.evaluate checks every compiled rollout against the eager one).
 
 A package (~6 MB: the code and the weights) is compiled once per model and input shapes (20-60 s on 2 cores) and kept
-on disk under a key of the model's weights, statistics and args, the shapes and the torch version, so a design
+on disk under a key of the model's weights, statistics and args, the shapes, the torch version and the CPU (its code
+is built for the machine it runs on), so a design
 session or the next evaluation loads it in milliseconds; removing the cache directory only costs recompiling.
 Kinematic models are not compiled this way (their placement order is a Python tree).
 """
@@ -74,6 +75,20 @@ class _Step(nn.Module):
         return self.model.step(joint_state, beam_state, static, t)
 
 
+def machine_key() -> str:
+    """What a package's machine code was compiled for: inductor builds it with -march=native, so a package from
+    another CPU (a shared cache, a copied home directory) could stop at an illegal instruction. The CPU's model name
+    and flags (Linux /proc/cpuinfo, else the platform) and torch's CPU capability."""
+    import platform
+    cpu = ""
+    try:
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+        cpu = "|".join(next((ln for ln in lines if ln.startswith(k)), "") for k in ("model name", "flags"))
+    except OSError:
+        pass
+    return "|".join([platform.machine(), cpu or platform.processor(), torch.backends.cpu.get_cpu_capability()])
+
+
 def fingerprint(model: Simulator) -> str:
     """sha256 of a model's args (but the rollout_* settings of its answers, which the step does not read), every
     parameter and buffer (name, dtype, shape, bytes) and the torch version: two models with the same fingerprint
@@ -98,6 +113,7 @@ class AotSteps:
         self.runners: dict = {}
         self.fingerprints: dict[int, str] = {}
         self.compiled = 0  # packages compiled (not found in the cache) by this object
+        self.machine = machine_key()
 
     def step_of(self, model: Simulator) -> Callable:
         if model.kinematic:
@@ -123,7 +139,8 @@ class AotSteps:
             # contiguous, as when compiled: a package reads its inputs at the strides it was compiled with
             inputs = [x.contiguous() for x in inputs]
             shapes = [(tuple(x.shape), str(x.dtype)) for x in inputs]
-            key = (self.fingerprints[id(model)], union, g.n_graphs, sizes, bool(model.span_input), tuple(shapes))
+            key = (self.fingerprints[id(model)], self.machine, union, g.n_graphs, sizes, bool(model.span_input),
+                   tuple(shapes))
             if key not in self.runners:
                 self.runners[key] = self._runner(model, key, inputs, union, g.n_graphs, sizes)
             out = self.runners[key](*inputs)
@@ -131,9 +148,12 @@ class AotSteps:
 
         return step
 
+    def package_path(self, key) -> Path:
+        """Where the package of a key (model fingerprint, machine, graph counts, input shapes) is kept."""
+        return self.cache / f"step_{hashlib.sha256(repr(key).encode()).hexdigest()[:32]}.pt2"
+
     def _runner(self, model: Simulator, key, inputs, union, n_graphs, sizes):
-        name = hashlib.sha256(repr(key).encode()).hexdigest()[:32]
-        path = self.cache / f"step_{name}.pt2"
+        path = self.package_path(key)
         if not path.exists():
             self.cache.mkdir(parents=True, exist_ok=True)
             self.log(f"aot: compiling the step for shapes {[s for s, _ in key[-1][:2]]} into {path} "

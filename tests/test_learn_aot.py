@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from data_schema.testing import synthetic_episode
-from learn.aot import AotSteps, backend_checked, fingerprint
+from learn.aot import AotSteps, backend_checked, fingerprint, machine_key
 from learn.dataset import GraphSet
 from learn.ensemble import Ensemble
 from learn.features import extract, rebuild_all_points
@@ -96,6 +96,10 @@ def test_a_package_is_keyed_by_the_weights_and_bad_backends_are_refused(features
     assert fingerprint(a) != fingerprint(b)
     with pytest.raises(ValueError, match=re.escape("rollout_backend='tensorrt': must be one of torchscript | aot")):
         backend_checked("tensorrt")
+    steps = AotSteps(log=None)
+    assert steps.machine == machine_key() and "|" in steps.machine  # the CPU its code is built for (-march=native)
+    key = ("model", steps.machine, False, 1, None, False, ())
+    assert steps.package_path(key) != steps.package_path(("model", "another CPU", *key[2:]))
     kinematic = small_model(features, update="kinematic", frame="global")
     with pytest.raises(ValueError, match="rollout_backend=aot: a kinematic model"):
         AotSteps(log=None).step_of(kinematic)
