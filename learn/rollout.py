@@ -28,7 +28,7 @@ def unroll(model: Simulator, joint_state: torch.Tensor, beam_state: torch.Tensor
         n, lead = len(t) - 1, joint_state.shape[:-2]
         times = t[1:].reshape(n, *(1,) * len(lead)).expand(n, *lead)
         j, b = step(joint_state.expand(n, *joint_state.shape), beam_state.expand(n, *beam_state.shape),
-                          static, times)
+                    static, times)
         return torch.cat([joint_state[None], j]), torch.cat([beam_state[None], b])
     joints, beams = [joint_state], [beam_state]
     for k in range(len(t) - 1):
@@ -185,7 +185,7 @@ class CompiledRollout:
     steps as the inputs' frame times give. backend "aot": every step of every model (an ensemble's members each) is
     an AOTInductor package (learn/aot.py: compiled once per model and input shapes, kept in `cache`), the rest of the
     rollout (the copies an answer averages, stacking the frames, rebuilding the points) plain PyTorch: the fastest
-    for one design (sessions 38: x0.6 of the trace). backend "torchscript" (the default): TorchScript rollouts
+    for one design (session 38: x0.67 of the trace). backend "torchscript" (the default): TorchScript rollouts
     (traced, frozen), a fraction of the Python overhead per step, as many steps as the traced example has frames - 1.
     An additive model has one trace that serves every graph; a kinematic model's placement order (learn/kinematics.py)
     is baked into its trace, so it keeps one per graph (incidence and fixed joint), traced on first use; a stiffness
