@@ -17,6 +17,7 @@ import hashlib
 import json
 import os
 import tempfile
+import weakref
 from collections.abc import Callable
 from pathlib import Path
 
@@ -105,13 +106,14 @@ def fingerprint(model: Simulator) -> str:
 class AotSteps:
     """The compiled steps of every model it is asked for (an ensemble's members each), one package per model and
     input shapes, loaded from `cache` when there and compiled into it (atomically) when not. step_of(model) is
-    called like model.step."""
+    called like model.step. A model's fingerprint is taken at its first use here: change its weights after that and
+    make a new AotSteps (a CompiledRollout makes its own)."""
 
     def __init__(self, cache: str | Path | None = None, log: Callable[[str], None] | None = print):
         self.cache = Path(cache) if cache else default_cache()
         self.log = log or (lambda _: None)
         self.runners: dict = {}
-        self.fingerprints: dict[int, str] = {}
+        self.fingerprints: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # model -> fingerprint
         self.compiled = 0  # packages compiled (not found in the cache) by this object
         self.machine = machine_key()
 
@@ -119,8 +121,8 @@ class AotSteps:
         if model.kinematic:
             raise ValueError("rollout_backend=aot: a kinematic model (model.update=kinematic) places beams along a "
                              "Python tree the export cannot follow; use rollout_backend=torchscript")
-        if id(model) not in self.fingerprints:
-            self.fingerprints[id(model)] = fingerprint(model)
+        if model not in self.fingerprints:
+            self.fingerprints[model] = fingerprint(model)
 
         def step(joint_state, beam_state, static: Static, t):
             g = static.index
@@ -139,7 +141,7 @@ class AotSteps:
             # contiguous, as when compiled: a package reads its inputs at the strides it was compiled with
             inputs = [x.contiguous() for x in inputs]
             shapes = [(tuple(x.shape), str(x.dtype)) for x in inputs]
-            key = (self.fingerprints[id(model)], self.machine, union, g.n_graphs, sizes, bool(model.span_input),
+            key = (self.fingerprints[model], self.machine, union, g.n_graphs, sizes, bool(model.span_input),
                    tuple(shapes))
             if key not in self.runners:
                 self.runners[key] = self._runner(model, key, inputs, union, g.n_graphs, sizes)
