@@ -8,8 +8,12 @@ rules flag. `.venv/bin/python scripts/error_breakdown.py reports/a/102 [reports/
   in each bin (with --train-sizes: the first --train-designs episodes by name that the split file does not hold out,
   as learn.train's train_designs takes them);
 - rules: bad answers caught and good ones flagged by `out-of-range share > --max-out-of-range or unrolled indicator >
-  T`, for T = --unrolled (the session-32 local threshold) and T = 0 (every one-kind design), as conf/validity judges.
-Session 36 (docs/learned_simulator.md) made its size table and its counts over four models with this.
+  T`, for T = --unrolled (the session-32 local threshold) and T = 0 (every one-kind design), as conf/validity judges;
+- per model (with --quantiles): the out-of-range threshold each model would get from its own validation designs (the
+  q-quantile of their shares; --split's `val`), measured on its other designs beside the fixed --max-out-of-range,
+  every one-kind design flagged as conf/validity's local section does.
+Session 36 (docs/learned_simulator.md) made its size table and its counts over four models with this; session 41 its
+per-model table over six.
 """
 from __future__ import annotations
 
@@ -69,6 +73,13 @@ def size_table(designs: list[dict], bins: list[float], train: np.ndarray | None)
     return lines
 
 
+def flag_counts(flagged: np.ndarray, is_bad: np.ndarray) -> str:
+    """'caught of bad | false of good | Youden's J' cells."""
+    caught, false = int((flagged & is_bad).sum()), int((flagged & ~is_bad).sum())
+    j = caught / max(is_bad.sum(), 1) - false / max((~is_bad).sum(), 1)
+    return f"{caught} of {int(is_bad.sum())} | {false} of {int((~is_bad).sum())} | {j:.2f}"
+
+
 def rule_table(reports: dict[str, list[dict]], bad: float, max_oor: float, unrolled: float) -> list[str]:
     lines = ["| rule | bad flagged | good flagged | Youden's J |", "|---|---|---|---|"]
     designs = [d for ds in reports.values() for d in ds]
@@ -78,10 +89,27 @@ def rule_table(reports: dict[str, list[dict]], bad: float, max_oor: float, unrol
     is_bad = errors > bad
     for t in (unrolled, 0.0):
         flagged = (oor > max_oor) | (roll > t)
-        caught, false = int((flagged & is_bad).sum()), int((flagged & ~is_bad).sum())
-        j = caught / max(is_bad.sum(), 1) - false / max((~is_bad).sum(), 1)
-        lines.append(f"| out of range > {max_oor:g} or unrolled > {t:g} | {caught} of {int(is_bad.sum())} | "
-                     f"{false} of {int((~is_bad).sum())} | {j:.2f} |")
+        lines.append(f"| out of range > {max_oor:g} or unrolled > {t:g} | {flag_counts(flagged, is_bad)} |")
+    return lines
+
+
+def per_model_table(reports: dict[str, list[dict]], val: set[str], quantiles: list[float], bad: float,
+                    max_oor: float) -> list[str]:
+    """Per report: the fixed out-of-range threshold against the q-quantiles of the shares of the model's own
+    validation designs (those named in `val`), each measured on the report's other designs."""
+    lines = ["| report | threshold | value | bad flagged | good flagged | Youden's J |", "|---|---|---|---|---|---|"]
+    for name, designs in reports.items():
+        in_val = np.array([d.get("name") in val for d in designs])
+        if not in_val.any() or in_val.all():
+            lines.append(f"| {name} | - | - | - | - | no split into validation and other designs |")
+            continue
+        oor = np.array([d["validity"]["out_of_range_fraction"] for d in designs])
+        one_kind = np.array([d["validity"]["unrolled_one_kind"] > 0 for d in designs])
+        is_bad = np.array([d["max_rel_error"] > bad for d in designs])[~in_val]
+        for label, t in [("fixed", max_oor)] + [(f"validation q{q:g}", float(np.quantile(oor[in_val], q)))
+                                                for q in quantiles]:
+            flagged = ((oor > t) | one_kind)[~in_val]
+            lines.append(f"| {name} | {label} | {t:.3f} | {flag_counts(flagged, is_bad)} |")
     return lines
 
 
@@ -96,6 +124,8 @@ def main() -> None:
     p.add_argument("--train-designs", type=int, help="the first N training designs (learn.train's train_designs)")
     p.add_argument("--max-out-of-range", type=float, default=0.381, help="conf/validity local: max_out_of_range")
     p.add_argument("--unrolled", type=float, default=0.867, help="the unrolled threshold to compare with 0")
+    p.add_argument("--quantiles", help="per-model out-of-range thresholds from the validation designs' shares at "
+                   "these quantiles, comma-separated in (0, 1), e.g. 0.5,0.67,0.8 (the validation designs: --split's val)")
     p.add_argument("--out", help="also write the tables here (markdown)")
     a = p.parse_args()
     if not 0 < a.bad < 1:
@@ -103,6 +133,9 @@ def main() -> None:
     bins = [float(x) for x in a.bins.split(",")]
     if len(bins) < 2 or any(hi <= lo for lo, hi in zip(bins[:-1], bins[1:])):
         raise SystemExit(f"--bins={a.bins}: give at least two increasing edges in mm")
+    quantiles = [float(x) for x in a.quantiles.split(",")] if a.quantiles else []
+    if any(not 0 < q < 1 for q in quantiles):
+        raise SystemExit(f"--quantiles={a.quantiles}: allowed are fractions in (0, 1), comma-separated")
     reports = {r: designs_of(r) for r in a.reports}
     train = training_sizes(a.train_sizes, a.split, a.train_designs) if a.train_sizes else None
     text = "\n".join([f"# Error breakdown (bad: max error > {100 * a.bad:g} % of the design size)", "",
@@ -110,6 +143,11 @@ def main() -> None:
                       f"## Mixed designs by size ({a.reports[0]})", "", *size_table(reports[a.reports[0]], bins, train),
                       "", "## Validity rules over all reports", "",
                       *rule_table(reports, a.bad, a.max_out_of_range, a.unrolled), ""])
+    if quantiles:
+        val = set(yaml.safe_load(Path(a.split).read_text()).get("val", []))
+        text += "\n".join(["", "## Out-of-range threshold per model (one-kind designs flagged; measured on the "
+                            "designs outside validation)", "",
+                            *per_model_table(reports, val, quantiles, a.bad, a.max_out_of_range), ""])
     print(text)
     if a.out:
         from data_schema import atomic

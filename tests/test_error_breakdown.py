@@ -32,3 +32,23 @@ def test_the_breakdown_counts_bad_answers_by_kind_and_the_rules_that_flag_them(t
     bad = subprocess.run([sys.executable, "scripts/error_breakdown.py", str(tmp_path / "a"), "--bins", "200,100"],
                          cwd=REPO, capture_output=True, text=True)
     assert bad.returncode != 0 and "--bins=200,100" in bad.stderr
+
+
+def test_per_model_thresholds_come_from_the_models_own_validation_designs_and_are_measured_on_the_rest(tmp_path):
+    split = tmp_path / "split.yaml"
+    split.write_text("val: [v1.h5, v2.h5, v3.h5]\ntest: []\n")
+    val = [dict(design("mixed", 150, 0.01, oor=x), name=f"v{i}.h5") for i, x in enumerate((0.1, 0.2, 0.3), 1)]
+    rest = [dict(design("mixed", 150, 0.12, oor=0.25), name="a.h5"),   # bad: above q0.5 (0.2), below the fixed 0.381
+            dict(design("mixed", 150, 0.02, oor=0.15), name="b.h5"),   # good, below both
+            dict(design("all up", 150, 0.02, oor=0.0), name="c.h5")]   # good, one-kind: flagged by either
+    (tmp_path / "m").mkdir()
+    (tmp_path / "m" / "report.json").write_text(json.dumps({"designs": val + rest}))
+    out = tmp_path / "bd.md"
+    subprocess.run([sys.executable, "scripts/error_breakdown.py", str(tmp_path / "m"), "--split", str(split),
+                    "--quantiles", "0.5", "--out", str(out)], cwd=REPO, check=True, capture_output=True)
+    text = out.read_text()
+    assert f"| {tmp_path / 'm'} | fixed | 0.381 | 0 of 1 | 1 of 2 | -0.50 |" in text  # validation designs not counted
+    assert f"| {tmp_path / 'm'} | validation q0.5 | 0.200 | 1 of 1 | 1 of 2 | 0.50 |" in text
+    bad = subprocess.run([sys.executable, "scripts/error_breakdown.py", str(tmp_path / "m"), "--quantiles", "1.5"],
+                         cwd=REPO, capture_output=True, text=True)
+    assert bad.returncode != 0 and "--quantiles=1.5" in bad.stderr
