@@ -13,7 +13,7 @@ rules flag. `.venv/bin/python scripts/error_breakdown.py reports/a/102 [reports/
   q-quantile of their shares; --split's `val`), measured on its other designs beside the fixed --max-out-of-range,
   every one-kind design flagged as conf/validity's local section does.
 Session 36 (docs/learned_simulator.md) made its size table and its counts over four models with this; session 41 its
-per-model table over six.
+per-model table over eight.
 """
 from __future__ import annotations
 
