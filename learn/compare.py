@@ -12,6 +12,10 @@ With `sizes` (one number per report, e.g. its training designs) the reports are 
 design's error is fitted as a N^-b (least squares in log-log over the reports), and the table gives the median of the
 per-design exponents b, the exponents of the median and p95 errors, and the N at which the median would reach
 `target` if the power law held (an extrapolation, stated as one); scaling.png draws median and p95 against N.
+
+With `size_bins` (design-size edges, mm) the same comparison per bin of the designs' size (the base report's
+design_size_mm): each report's median there, and against the base the designs better and the median ratio, so a
+change that moves the error between small and large designs shows (session 41).
 """
 from __future__ import annotations
 
@@ -72,6 +76,41 @@ def compare(reports: list[dict], labels: list[str]) -> dict:
     return {"base": labels[0], "n_designs": len(keys), "rows": rows, "base_worst_designs": worst,
             "designs": [{"data_dir": k[0], "name": k[1]} for k in keys],
             "max_rel_error": [a.tolist() for a in arrays]}
+
+
+def by_design_size(result: dict, reports: list[dict], edges: list[float]) -> list[dict]:
+    """compare's rows again per design-size bin [lo, hi) (mm, the base report's design_size_mm of each design)."""
+    if len(edges) < 2 or any(hi <= lo for lo, hi in zip(edges[:-1], edges[1:])):
+        raise ValueError(f"size_bins={edges}: give at least two increasing edges in mm")
+    size_of = {(str(d.get("data_dir", reports[0]["data_dir"])), d["name"]): d.get("design_size_mm")
+               for d in reports[0]["designs"]}
+    keys = [(d["data_dir"], d["name"]) for d in result["designs"]]
+    if any(size_of[k] is None for k in keys):
+        raise ValueError("size_bins: the base report's designs carry no design_size_mm (re-run learn.evaluate)")
+    size = np.array([size_of[k] for k in keys], dtype=float)
+    arrays = [np.asarray(a) for a in result["max_rel_error"]]
+    labels = [r["label"] for r in result["rows"]]
+    out = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        m = (size >= lo) & (size < hi)
+        rows = [] if not m.any() else [{"label": labels[0], "median": float(np.median(arrays[0][m]))}] + [
+            {"label": lab, "median": float(np.median(a[m])), **paired(arrays[0][m], a[m])}
+            for lab, a in zip(labels[1:], arrays[1:])]
+        out.append({"lo": float(lo), "hi": float(hi), "n": int(m.sum()), "rows": rows})
+    return out
+
+
+def by_size_markdown(bins: list[dict]) -> str:
+    lines = ["", "## By design size (mm): median, and against the base: better on, median ratio", "",
+             "| size | designs | report | median | better than the base on | median ratio to the base |",
+             "|---|---|---|---|---|---|"]
+    for b in bins:
+        for r in b["rows"]:
+            vs = f"{r['better_on']} of {b['n']} | x{r['median_ratio']:.3f}" if "better_on" in r else "(base) | "
+            lines.append(f"| {b['lo']:g}-{b['hi']:g} | {b['n']} | {r['label']} | {100 * r['median']:.2f} % | {vs} |")
+        if not b["rows"]:
+            lines.append(f"| {b['lo']:g}-{b['hi']:g} | 0 | - | - | - | - |")
+    return "\n".join(lines) + "\n"
 
 
 def power_law_exponent(sizes, errors) -> float:
@@ -158,6 +197,8 @@ def markdown(result: dict) -> str:
     lines += [f"| {w['data_dir']}/{w['name']} | " + " | ".join(pct(e) for e in w["errors"]) + " |"
               for w in result["base_worst_designs"]]
     text = "\n".join(lines) + "\n"
+    if "by_size" in result:
+        text += by_size_markdown(result["by_size"])
     return text + scaling_markdown(result["scaling"]) if "scaling" in result else text
 
 
@@ -196,7 +237,10 @@ def write_outputs(out_dir: str | Path, stem: str, result: dict, to_markdown, to_
 def main(cfg: DictConfig) -> None:
     paths = [str(p) for p in cfg.reports]
     labels = [str(v) for v in cfg.labels] if cfg.labels else paths
-    result = compare([read_report(p) for p in paths], labels)
+    reports = [read_report(p) for p in paths]
+    result = compare(reports, labels)
+    if cfg.get("size_bins"):
+        result["by_size"] = by_design_size(result, reports, [float(v) for v in cfg.size_bins])
     if cfg.get("sizes"):
         result["scaling"] = scaling(result, [float(v) for v in cfg.sizes], float(cfg.target))
     write_outputs(cfg.out_dir, "compare", result, markdown, plot if cfg.plots else None)

@@ -122,3 +122,29 @@ def test_cli_writes_the_scaling_section_and_plot(tmp_path):
     on_disk = json.loads((out / "compare.json").read_text())
     assert on_disk["scaling"]["median_exponent"] == pytest.approx(0.5)
     assert "error ~ N^-b" in (out / "compare.md").read_text() and (out / "scaling.png").stat().st_size > 0
+
+
+def test_by_design_size_compares_within_each_bin_of_the_base_reports_sizes():
+    from learn.compare import by_design_size
+    sizes = {"d0": 120.0, "d1": 140.0, "d2": 210.0, "d3": 230.0}
+
+    def sized(errors):
+        r = report(errors)
+        for d in r["designs"]:
+            d["design_size_mm"] = sizes[d["name"]]
+        return r
+    base = sized({"d0": 0.02, "d1": 0.02, "d2": 0.04, "d3": 0.06})
+    other = sized({"d0": 0.03, "d1": 0.03, "d2": 0.02, "d3": 0.03})  # worse when small, better when large
+    out = compare([base, other], ["base", "other"])
+    bins = by_design_size(out, [base, other], [0, 150, 200, 1000])
+    assert [b["n"] for b in bins] == [2, 0, 2] and bins[1]["rows"] == []
+    small, large = bins[0]["rows"][1], bins[2]["rows"][1]
+    assert (small["better_on"], small["median_ratio"]) == (0, pytest.approx(1.5))
+    assert (large["better_on"], large["median_ratio"]) == (2, pytest.approx(0.5))
+    assert bins[2]["rows"][0]["median"] == pytest.approx(0.05)
+    out["by_size"] = bins
+    assert "| 200-1000 | 2 | other | 2.50 % | 2 of 2 | x0.500 |" in markdown(out)
+    with pytest.raises(ValueError, match="size_bins"):
+        by_design_size(out, [base, other], [200, 100])
+    with pytest.raises(ValueError, match="design_size_mm"):
+        by_design_size(out, [report({"d0": 0.1, "d1": 0.1, "d2": 0.1, "d3": 0.1}), other], [0, 1000])
