@@ -113,6 +113,14 @@ def per_model_table(reports: dict[str, list[dict]], val: set[str], quantiles: li
     return lines
 
 
+def numbers(option: str, text: str) -> list[float]:
+    """A comma-separated option as floats, or a clear error naming it."""
+    try:
+        return [float(x) for x in text.split(",")]
+    except ValueError:
+        raise SystemExit(f"{option}={text}: give numbers, comma-separated") from None
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("reports", nargs="+", help="learn.evaluate out_dirs (or their report.json); the first gets the "
@@ -130,10 +138,10 @@ def main() -> None:
     a = p.parse_args()
     if not 0 < a.bad < 1:
         raise SystemExit(f"--bad={a.bad}: allowed is a fraction of the design size in (0, 1)")
-    bins = [float(x) for x in a.bins.split(",")]
+    bins = numbers("--bins", a.bins)
     if len(bins) < 2 or any(hi <= lo for lo, hi in zip(bins[:-1], bins[1:])):
         raise SystemExit(f"--bins={a.bins}: give at least two increasing edges in mm")
-    quantiles = [float(x) for x in a.quantiles.split(",")] if a.quantiles else []
+    quantiles = numbers("--quantiles", a.quantiles) if a.quantiles else []
     if any(not 0 < q < 1 for q in quantiles):
         raise SystemExit(f"--quantiles={a.quantiles}: allowed are fractions in (0, 1), comma-separated")
     reports = {r: designs_of(r) for r in a.reports}

@@ -52,3 +52,7 @@ def test_per_model_thresholds_come_from_the_models_own_validation_designs_and_ar
     bad = subprocess.run([sys.executable, "scripts/error_breakdown.py", str(tmp_path / "m"), "--quantiles", "1.5"],
                          cwd=REPO, capture_output=True, text=True)
     assert bad.returncode != 0 and "--quantiles=1.5" in bad.stderr
+    for option, value in (("--quantiles", "0.5,x"), ("--bins", "0,a")):
+        bad = subprocess.run([sys.executable, "scripts/error_breakdown.py", str(tmp_path / "m"), option, value],
+                             cwd=REPO, capture_output=True, text=True)
+        assert bad.returncode != 0 and f"{option}={value}: give numbers" in bad.stderr
