@@ -6,8 +6,13 @@ script trains a fresh simulator (model and optimiser from conf/, any `key=value`
 the first `--frames` frames of `--train-designs` training designs (x rotations x mirror; the held-out designs are
 those of `--split-from`, a split file or a checkpoint) and reports, every `--log-every` epochs, the median over
 training and validation designs of the max point error / design size at the last of those frames, beside the FEA's
-own motion there. A quick probe (minutes on one core) of
-what limits a model shape before a full training (hours); one row per run is appended to `--out`/first_step.csv.
+own motion there. The learning rate follows conf/optim's schedule over `--epochs` (step: x0.1 from half of them
+on, `optim.lr_drop_at`), as learn.train's does. A quick probe (minutes on one core) of
+what limits a model shape or a loss before a full training (hours); one row per run is appended to `--out`/first_step.csv.
+Session 42's probe of the first step as memorised (26 designs as sampled, batch 2, `optim.lr=3e-4`, fp32):
+
+    .venv/bin/python scripts/first_step.py --train-designs 26 --epochs 301 rotations=1 lattice_turns=1 mirror=false \
+        batch_size=2 optim.lr=3e-4 precision=fp32 threads=1 [option=...]
 
     .venv/bin/python scripts/first_step.py --epochs 61 model.n_blocks=4 model.latent=48 'model.widths=[96,48]'
 """
