@@ -24,10 +24,14 @@ def beam_chords(beam_state: torch.Tensor) -> torch.Tensor:
     return torch.cat([centre("middle") - centre("start"), centre("end") - centre("middle")], -1)
 
 
+GEOMETRY_LOSSES = ("columns", "points", "both")  # loss_geometry (conf/train.yaml): multistep_loss
+
+
 def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_std: float = 0.0,
                    stress_weight: float = 1.0, generator: torch.Generator | None = None,
                    geometry: str = "columns", carry: float = 1.0, chord_weight: float = 0.0,
-                   final_weight: float = 0.0, noise_every_step: bool = False) -> torch.Tensor:
+                   final_weight: float = 0.0, noise_every_step: bool = False,
+                   point_weight: float = 1.0) -> torch.Tensor:
     """Mean squared error of the states after 1..horizon steps from every start frame; `noise_std` (in units of
     the per-column step std) perturbs the start states so the model learns to correct its own drift;
     noise_every_step: also the state every later step starts from (the one the model reached), on the columns the
@@ -36,7 +40,9 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
     (model.update=direct) answers every frame 1..F-1 from frame 0 in one pass: the horizon and the carry do not apply.
     geometry="columns": every state column in units of its step std (stress columns weighted by stress_weight);
     geometry="points": the geometry as the points it rebuilds (what the evaluation measures), their distance to
-    the FEA's in units of the mean geometry step std, plus the stress columns as above.
+    the FEA's in units of the mean geometry step std, plus the stress columns as above; geometry="both": every
+    column as "columns" does and the points' term on top at `point_weight` (the columns hold the blocks' orientation,
+    which "points" weighs ~1/100 as much and lets drift over a rollout; the points place the blocks: session 42).
     carry: the fraction of the gradient carried back from each step into the state it started from. 1: through the
     whole unroll; 0: stopped between steps (the pushforward trick: every step is trained as a single step, from the
     state the model itself reached, to the FEA's next state); in between, a frame's error presses on the earlier
@@ -46,8 +52,8 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
     whole grid) weigh little, and which carried by the lever arm is most of the position error (docs/learned_simulator.md).
     final_weight > 0 adds, at that weight, the state columns' error at the episode's final frame (where the unroll
     reaches it): the shape a designer asks for, and the frame whose error the evaluation's max over frames mostly is."""
-    if geometry not in ("columns", "points"):
-        raise ValueError(f"loss geometry={geometry!r}: must be columns | points")
+    if geometry not in GEOMETRY_LOSSES:
+        raise ValueError(f"loss geometry={geometry!r}: must be {' | '.join(GEOMETRY_LOSSES)}")
     F = len(batch.t)
     h = max(1, min(int(horizon), F - 1))
     S = F - h  # start frames 0 .. F-1-h
@@ -58,10 +64,12 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
     if noise_std > 0:
         j = j + noise_std * joint_std * torch.randn(j.shape, generator=generator)
         b = b + noise_std * beam_std * torch.randn(b.shape, generator=generator)
-    points = geometry == "points"
+    points = geometry in ("points", "both")
     wj, wb = column_weights(JOINT, stress_weight), column_weights(BEAM, stress_weight)
-    if points:
+    if geometry == "points":
         wj[JOINT.geometry_slice], wb[BEAM.geometry_slice] = 0.0, 0.0
+    if points:
+        point_weight = 1.0 if geometry == "points" else float(point_weight)
         scale = torch.cat([joint_std[JOINT.geometry_slice], beam_std[BEAM.geometry_slice]])
         scale = scale.mean()
     if chord_weight > 0:
@@ -93,7 +101,7 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
             loss = loss + chord_weight * ((beam_chords(b) - beam_chords(tb)) / chord_std).square().mean()
         if points:
             d = (rebuild_all_points(j, b) - rebuild_all_points(tj, tb)) / scale
-            loss = loss + d.square().sum(-1).mean()
+            loss = loss + point_weight * d.square().sum(-1).mean()
     loss = loss / h
     if final_weight > 0:  # the last step from the last start frame S-1 lands on the episode's final frame F-1
         loss = loss + final_weight * columns(ej[-1], eb[-1])

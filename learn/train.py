@@ -161,6 +161,7 @@ def loss_terms(cfg: DictConfig) -> dict:
     """What the loss weighs besides the state columns (learn.metrics.multistep_loss keywords), for training and
     validation alike."""
     return {"geometry": cfg.get("loss_geometry", "columns"),
+            "point_weight": weight_checked(cfg, "point_weight", "no point term (loss_geometry=both)"),
             "chord_weight": weight_checked(cfg, "chord_weight", "no chord term"),
             "final_weight": weight_checked(cfg, "final_weight", "the final frame weighs as every other"),
             "noise_every_step": flag_checked(cfg, "noise_every_step")}

@@ -296,6 +296,31 @@ def test_input_floor_is_zero_with_every_component_and_grows_as_the_pca_drops_som
     assert floors[0] < 1e-5 < 1e-3 < floors[1]
 
 
+def test_the_both_geometry_loss_is_the_columns_plus_the_weighted_point_term(features):
+    """multistep_loss(geometry="both"): every state column as "columns" weighs it, and the point term of "points" on
+    top at point_weight. Without the stress columns (stress_weight 0) "columns" is the geometry columns alone and
+    "points" the point term alone, so both = columns + point_weight x points; an unknown geometry is refused."""
+    from learn.metrics import multistep_loss
+    train = GraphSet.build(features[:2])
+    torch.manual_seed(0)
+    model = Simulator.fit({"core": "double_gn", "latent": 8, "widths": [16], "time_input": True},
+                          train.joint_state, train.beam_state, train.static, 1.0)
+
+    def loss(geometry, stress_weight=0.0, **kw):
+        with torch.no_grad():
+            return float(multistep_loss(model, train, 2, stress_weight=stress_weight, geometry=geometry, **kw))
+
+    columns, points = loss("columns"), loss("points")
+    assert columns > 0 and points > 0
+    for w in (0.0, 1.0, 2.5):
+        assert loss("both", point_weight=w) == pytest.approx(columns + w * points, rel=1e-5)
+    assert loss("points", point_weight=0.0) == pytest.approx(points, rel=1e-6)  # "points" weighs its term 1 always
+    # with the stress columns: both at weight 0 is the column loss, stress included
+    assert loss("both", 0.1, point_weight=0.0) == pytest.approx(loss("columns", 0.1), rel=1e-6)
+    with pytest.raises(ValueError, match="must be columns . points . both"):
+        multistep_loss(model, train, 2, geometry="mesh")
+
+
 def test_a_stopped_rollout_gradient_trains_each_step_from_the_state_the_model_reached(features):
     """multistep_loss(carry=0): the same loss value, and the gradient of step 2 is that of a single step from the
     (detached) state step 1 produced; carry=0.5 over two steps: the gradient is halfway between stopped and through

@@ -370,7 +370,7 @@ def test_every_model_config_composes_and_trains(data_dir, tmp_path, model_name):
     assert train(cfg)["core"] == model_name
 
 
-@pytest.mark.parametrize("option", ["model.update=kinematic", "loss_geometry=points", "rollout_gradient=stop",
+@pytest.mark.parametrize("option", ["model.update=kinematic", "loss_geometry=points", "loss_geometry=both", "rollout_gradient=stop",
                                     "rollout_gradient=0.5", "model.frame=fixed", "rotations_redraw=true", "lattice_turns=4",
                                     "chord_weight=1.0", "precision=bf16", "teacher_weight=1.0",
                                     "model.update=direct", "model.update=stiffness", "model.span_input=true"])
