@@ -64,12 +64,11 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
     if noise_std > 0:
         j = j + noise_std * joint_std * torch.randn(j.shape, generator=generator)
         b = b + noise_std * beam_std * torch.randn(b.shape, generator=generator)
-    points = geometry in ("points", "both")
+    point_w = {"columns": 0.0, "points": 1.0, "both": float(point_weight)}[geometry]  # the point term's weight
     wj, wb = column_weights(JOINT, stress_weight), column_weights(BEAM, stress_weight)
     if geometry == "points":
         wj[JOINT.geometry_slice], wb[BEAM.geometry_slice] = 0.0, 0.0
-    if points:
-        point_weight = 1.0 if geometry == "points" else float(point_weight)
+    if point_w:
         scale = torch.cat([joint_std[JOINT.geometry_slice], beam_std[BEAM.geometry_slice]])
         scale = scale.mean()
     if chord_weight > 0:
@@ -99,9 +98,9 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
         loss = loss + columns(ej, eb)
         if chord_weight > 0:
             loss = loss + chord_weight * ((beam_chords(b) - beam_chords(tb)) / chord_std).square().mean()
-        if points:
+        if point_w:
             d = (rebuild_all_points(j, b) - rebuild_all_points(tj, tb)) / scale
-            loss = loss + point_weight * d.square().sum(-1).mean()
+            loss = loss + point_w * d.square().sum(-1).mean()
     loss = loss / h
     if final_weight > 0:  # the last step from the last start frame S-1 lands on the episode's final frame F-1
         loss = loss + final_weight * columns(ej[-1], eb[-1])
