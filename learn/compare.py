@@ -78,10 +78,16 @@ def compare(reports: list[dict], labels: list[str]) -> dict:
             "max_rel_error": [a.tolist() for a in arrays]}
 
 
+def increasing_edges(edges: list[float], option: str) -> list[float]:
+    """Design-size bin edges (mm) as given, or a ValueError naming the option: at least two, strictly increasing."""
+    if len(edges) < 2 or any(hi <= lo for lo, hi in zip(edges[:-1], edges[1:])):
+        raise ValueError(f"{option}: give at least two increasing edges in mm")
+    return edges
+
+
 def by_design_size(result: dict, reports: list[dict], edges: list[float]) -> list[dict]:
     """compare's rows again per design-size bin [lo, hi) (mm, the base report's design_size_mm of each design)."""
-    if len(edges) < 2 or any(hi <= lo for lo, hi in zip(edges[:-1], edges[1:])):
-        raise ValueError(f"size_bins={edges}: give at least two increasing edges in mm")
+    increasing_edges(edges, f"size_bins={edges}")
     size_of = {(str(d.get("data_dir", reports[0]["data_dir"])), d["name"]): d.get("design_size_mm")
                for d in reports[0]["designs"]}
     keys = [(d["data_dir"], d["name"]) for d in result["designs"]]

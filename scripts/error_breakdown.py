@@ -28,6 +28,8 @@ import yaml
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from learn.compare import increasing_edges  # noqa: E402  (after the repository root is on the path)
+
 
 def designs_of(report_dir: str) -> list[dict]:
     path = Path(report_dir)
@@ -138,9 +140,10 @@ def main() -> None:
     a = p.parse_args()
     if not 0 < a.bad < 1:
         raise SystemExit(f"--bad={a.bad}: allowed is a fraction of the design size in (0, 1)")
-    bins = numbers("--bins", a.bins)
-    if len(bins) < 2 or any(hi <= lo for lo, hi in zip(bins[:-1], bins[1:])):
-        raise SystemExit(f"--bins={a.bins}: give at least two increasing edges in mm")
+    try:
+        bins = increasing_edges(numbers("--bins", a.bins), f"--bins={a.bins}")
+    except ValueError as e:
+        raise SystemExit(str(e)) from None
     quantiles = numbers("--quantiles", a.quantiles) if a.quantiles else []
     if any(not 0 < q < 1 for q in quantiles):
         raise SystemExit(f"--quantiles={a.quantiles}: allowed are fractions in (0, 1), comma-separated")
