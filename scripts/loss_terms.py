@@ -28,11 +28,13 @@ from learn.dataset import GraphSet, load_features  # noqa: E402
 from learn.metrics import multistep_loss  # noqa: E402
 from learn.train import append_result  # noqa: E402
 
+
 def value_and_gradient(model, batch: GraphSet, horizon: int, **terms) -> tuple[float, torch.Tensor]:
     model.zero_grad()
     loss = multistep_loss(model, batch, horizon, **terms)
     loss.backward()
-    grad = torch.cat([p.grad.flatten() for p in model.parameters() if p.grad is not None])
+    grad = torch.cat([(torch.zeros_like(p) if p.grad is None else p.grad).flatten()  # a weight the term never
+                      for p in model.parameters()])  # reaches: zeros, so every term's gradient lines up
     return float(loss.detach()), grad
 
 
