@@ -40,8 +40,8 @@ def value_and_gradient(model, batch: GraphSet, horizon: int, **terms) -> tuple[f
 
 def term_sizes(path: str, data_dir: str, designs: int) -> dict:
     ckpt = checkpoint.load(path)
-    model, cfg = checkpoint.model_from(ckpt).train(), ckpt.get("config", {})
-    horizon, stress_weight = int(cfg.get("rollout_horizon", 10)), float(cfg.get("stress_weight", 0.1))
+    model, cfg = checkpoint.model_from(ckpt).train(), ckpt["config"]  # the run's own horizon and stress weight,
+    horizon, stress_weight = int(cfg["rollout_horizon"]), float(cfg["stress_weight"])  # not conf/'s literals again
     names = ckpt["split"]["train"][:designs]
     if not names:
         raise SystemExit(f"{path}: its split holds no training designs")
