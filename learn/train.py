@@ -344,6 +344,8 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
     elif cfg.get("split_from") or init:  # keep an earlier run's held-out designs; new episodes join train
         split = extend_split(checkpoint.split_of(cfg.split_from) if cfg.get("split_from") else init["split"],
                              by_name, cfg.get("split_missing", "error"))
+        extra_names = {f.name for f in extra}  # join after the cut below, once (session 44: they came in twice)
+        split = {**split, "train": [n for n in split["train"] if n not in extra_names]}
     else:
         split = split_names(features, cfg.split, cfg.seed)
     missing = [n for s in split.values() for n in s if n not in by_name]
