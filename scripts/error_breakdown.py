@@ -132,7 +132,9 @@ def main() -> None:
     p.add_argument("--train-sizes", metavar="DATA_DIR", help="count training designs per size bin from this data")
     p.add_argument("--split", default="conf/held_out/ds_default.yaml", help="the split file of --train-sizes")
     p.add_argument("--train-designs", type=int, help="the first N training designs (learn.train's train_designs)")
-    p.add_argument("--max-out-of-range", type=float, default=0.381, help="conf/validity local: max_out_of_range")
+    local = yaml.safe_load((ROOT / "conf" / "validity" / "default.yaml").read_text())["local"]
+    p.add_argument("--max-out-of-range", type=float, default=local["max_out_of_range"],
+                   help="default: conf/validity/default.yaml local: max_out_of_range")
     p.add_argument("--unrolled", type=float, default=0.867, help="the unrolled threshold to compare with 0")
     p.add_argument("--quantiles", help="per-model out-of-range thresholds from the validation designs' shares at "
                    "these quantiles, comma-separated in (0, 1), e.g. 0.5,0.67,0.8 (the validation designs: --split's val)")

@@ -4,6 +4,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import yaml
+
 REPO = Path(__file__).resolve().parent.parent
 
 
@@ -22,13 +24,18 @@ def test_the_breakdown_counts_bad_answers_by_kind_and_the_rules_that_flag_them(t
         (tmp_path / name / "report.json").write_text(json.dumps({"designs": ds}))
     out = tmp_path / "bd.md"
     subprocess.run([sys.executable, "scripts/error_breakdown.py", str(tmp_path / "a"), str(tmp_path / "b"),
-                    "--out", str(out)], cwd=REPO, check=True, capture_output=True)
+                    "--out", str(out), "--max-out-of-range", "0.381"], cwd=REPO, check=True, capture_output=True)
     text = out.read_text()
     assert "| pooled | all down | 2 | 1 |" in text and "| pooled | mixed | 3 | 1 |" in text
     assert "| 200-225 | - | 1 | 12.00 % | 12.00 % |" in text  # report a's mixed designs only
     # 0.867: the out-of-range design and the unrolled all-up one; the all-down 0.30 passes
     assert "| out of range > 0.381 or unrolled > 0.867 | 1 of 2 | 1 of 4 | 0.25 |" in text
     assert "| out of range > 0.381 or unrolled > 0 | 2 of 2 | 2 of 4 | 0.50 |" in text  # every one-kind design
+    # by default the fixed rule is conf/validity's (the local section's), not a copy of it
+    local = yaml.safe_load((REPO / "conf" / "validity" / "default.yaml").read_text())["local"]
+    subprocess.run([sys.executable, "scripts/error_breakdown.py", str(tmp_path / "a"), "--out", str(out)], cwd=REPO,
+                   check=True, capture_output=True)
+    assert f"| out of range > {local['max_out_of_range']:g} or unrolled > 0 |" in out.read_text()
     bad = subprocess.run([sys.executable, "scripts/error_breakdown.py", str(tmp_path / "a"), "--bins", "200,100"],
                          cwd=REPO, capture_output=True, text=True)
     assert bad.returncode != 0 and "--bins=200,100" in bad.stderr
@@ -45,7 +52,7 @@ def test_per_model_thresholds_come_from_the_models_own_validation_designs_and_ar
     (tmp_path / "m" / "report.json").write_text(json.dumps({"designs": val + rest}))
     out = tmp_path / "bd.md"
     subprocess.run([sys.executable, "scripts/error_breakdown.py", str(tmp_path / "m"), "--split", str(split),
-                    "--quantiles", "0.5", "--out", str(out)], cwd=REPO, check=True, capture_output=True)
+                    "--quantiles", "0.5", "--out", str(out), "--max-out-of-range", "0.381"], cwd=REPO, check=True, capture_output=True)
     text = out.read_text()
     assert f"| {tmp_path / 'm'} | fixed | 0.381 | 0 of 1 | 1 of 2 | -0.50 |" in text  # validation designs not counted
     assert f"| {tmp_path / 'm'} | validation q0.5 | 0.200 | 1 of 1 | 1 of 2 | 0.50 |" in text
