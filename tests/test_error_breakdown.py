@@ -52,7 +52,8 @@ def test_per_model_thresholds_come_from_the_models_own_validation_designs_and_ar
     (tmp_path / "m" / "report.json").write_text(json.dumps({"designs": val + rest}))
     out = tmp_path / "bd.md"
     subprocess.run([sys.executable, "scripts/error_breakdown.py", str(tmp_path / "m"), "--split", str(split),
-                    "--quantiles", "0.5", "--out", str(out), "--max-out-of-range", "0.381"], cwd=REPO, check=True, capture_output=True)
+                    "--quantiles", "0.5", "--out", str(out), "--max-out-of-range", "0.381"],
+                   cwd=REPO, check=True, capture_output=True)
     text = out.read_text()
     assert f"| {tmp_path / 'm'} | fixed | 0.381 | 0 of 1 | 1 of 2 | -0.50 |" in text  # validation designs not counted
     assert f"| {tmp_path / 'm'} | validation q0.5 | 0.200 | 1 of 1 | 1 of 2 | 0.50 |" in text

@@ -471,7 +471,8 @@ def test_train_extra_dirs_add_training_designs_after_the_cut_and_resume_with_the
     assert found["splits"]["train"]["n_designs"] == 2
     # every design once: with no train_designs cut, an earlier split's extension must not take the extra designs
     # in as well (session 44: init_from + train_extra_dirs trained each extra design twice)
-    for tag, start in (("all", f"split_from={tmp_path / 'held_out.yaml'}"), ("ft", f"init_from={tmp_path / 'run' / 'best.pt'}")):
+    for tag, start in (("all", f"split_from={tmp_path / 'held_out.yaml'}"),
+                       ("ft", f"init_from={tmp_path / 'run' / 'best.pt'}")):
         train(cfg_for("train", tiny(data_dir, tmp_path / tag, "epochs=0", start, f"train_extra_dirs=[{extra}]")))
         train_names = checkpoint.load(tmp_path / tag / "last.pt")["split"]["train"]
         assert sorted(train_names) == ["ep000.h5", "ep002.h5", "ep200.h5"], (tag, train_names)
