@@ -45,6 +45,10 @@ LARGE_N ?= 200
 large-data:  ## extra large training designs (conf/grid/large.yaml) -> data/ds_large, indices from 200000 so names never meet ds_default's; resumable
 	$(PY) -m fea_factory.generate n=$(LARGE_N) start=200000 grid=large out=data/ds_large jobs=$(JOBS) np=1
 
+VAL_N ?= 100
+validation-data:  ## extra validation designs for learn.train val_extra_dirs (never trained on, never in the 102 evaluated) -> data/ds_val, indices from 300000; resumable
+	$(PY) -m fea_factory.generate n=$(VAL_N) start=300000 out=data/ds_val jobs=$(JOBS) np=1
+
 validate:  ## validate every episode in OUT
 	$(PY) -m data_schema.validate $(OUT)
 

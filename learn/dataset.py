@@ -26,21 +26,22 @@ def episode_paths(data_dir: str | Path) -> list[Path]:
     return paths
 
 
-def extra_dirs_checked(dirs) -> list[Path]:
-    """conf/train.yaml train_extra_dirs: a list of directories that exist (checked before any episode is read)."""
+def extra_dirs_checked(dirs, key: str = "train_extra_dirs", example: str = "make large-data") -> list[Path]:
+    """conf/train.yaml train_extra_dirs / val_extra_dirs (`key`): a list of directories that exist (checked before any
+    episode is read)."""
     if dirs is None:
         return []
     if isinstance(dirs, (str, Path)) or not all(isinstance(d, (str, Path)) for d in dirs):
-        raise ValueError(f"train_extra_dirs={dirs!r}: must be a list of directories, e.g. '[data/ds_large]'")
+        raise ValueError(f"{key}={dirs!r}: must be a list of directories, e.g. '[data/ds_large]'")
     missing = [str(d) for d in dirs if not Path(d).is_dir()]
     if missing:
-        raise FileNotFoundError(f"train_extra_dirs: {missing} not found (generate them first, e.g. make large-data)")
+        raise FileNotFoundError(f"{key}: {missing} not found (generate them first, e.g. {example})")
     return [Path(d) for d in dirs]
 
 
 def design_paths(names: list[str], data_dir: str | Path, config: dict | None = None) -> list[Path]:
     """Where the named episodes of a checkpoint's split are: in data_dir, or else in the train_extra_dirs of the
-    checkpoint's config (training designs read from other directories: learn.train.training_extra); a name in
+    checkpoint's config (training designs read from other directories: learn.train.extra_designs); a name in
     neither is left at data_dir, whose reader then names the missing file."""
     extra = [Path(d) for d in (config or {}).get("train_extra_dirs") or []]
     out = []

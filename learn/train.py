@@ -205,16 +205,18 @@ def gradient_carry(cfg: DictConfig) -> float:
     return float(value)
 
 
-def training_extra(dirs, names: set[str]) -> list[EpisodeFeatures]:
-    """conf/train.yaml train_extra_dirs: the episodes of these directories, all training designs (never held out),
-    e.g. extra designs of one region of the design space. Their file names must differ from data_dir's and each
-    other's (a split holds names): generate them with another `start=`."""
+def extra_designs(dirs: list[Path], names: set[str], key: str) -> list[EpisodeFeatures]:
+    """The episodes of conf/train.yaml's train_extra_dirs (all training designs, never held out, e.g. extra designs
+    of one region of the design space) or val_extra_dirs (all validation designs, never trained on: more designs for
+    the monitor than the split's few). Their file names must differ from data_dir's and each other's (a split holds
+    names, and a name read twice could be one design trained on and validated on): generate them with another
+    `start=`. `names`: the names read so far, added to."""
     extra: list[EpisodeFeatures] = []
-    for d in extra_dirs_checked(dirs):
+    for d in dirs:
         for f in load_features(episode_paths(d)):
             if f.name in names:
-                raise ValueError(f"train_extra_dirs: {d}/{f.name} has the name of an episode already read (data_dir "
-                                 "or an earlier extra directory); generate extra designs with another start=")
+                raise ValueError(f"{key}: {d}/{f.name} has the name of an episode already read (data_dir or an "
+                                 "earlier extra directory); generate extra designs with another start=")
             names.add(f.name)
             extra.append(f)
     return extra
@@ -336,8 +338,11 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
 
     init = None if resumed or not cfg.get("init_from") else checkpoint.load(cfg.init_from)
     extra_dirs = extra_dirs_checked(cfg.get("train_extra_dirs"))  # before any episode is read
+    val_dirs = extra_dirs_checked(cfg.get("val_extra_dirs"), "val_extra_dirs", "make validation-data")
     features = load_features(episode_paths(cfg.data_dir))
-    extra = training_extra(extra_dirs, {f.name for f in features})
+    names = {f.name for f in features}
+    extra = extra_designs(extra_dirs, names, "train_extra_dirs")
+    val_extra = extra_designs(val_dirs, names, "val_extra_dirs")  # kept out of the split: evaluations never see them
     by_name = {f.name: f for f in features + extra}
     if resumed:
         split = resumed["split"]
@@ -361,7 +366,9 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
     log.info("episodes: %s", {s: len(v) for s, v in split.items()})
     train_envelope = envelope([by_name[n].conditions for n in split["train"]])  # physics the graphs do not carry
     train_set, fit_blocks = training_sets([by_name[n] for n in split["train"]], cfg)
-    val_set = GraphSet.build([by_name[n] for n in split["val"] or split["train"]])
+    if val_extra:
+        log.info("val_extra_dirs: %d more validation designs (the monitor's; not in the split)", len(val_extra))
+    val_set = GraphSet.build([by_name[n] for n in split["val"]] + val_extra or [by_name[n] for n in split["train"]])
     probe = GraphSet.build([by_name[n] for n in split["train"][:n_probe]]) if n_probe and split["train"] else None
 
     torch.manual_seed(cfg.seed)

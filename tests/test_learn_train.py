@@ -478,6 +478,34 @@ def test_train_extra_dirs_add_training_designs_after_the_cut_and_resume_with_the
         assert sorted(train_names) == ["ep000.h5", "ep002.h5", "ep200.h5"], (tag, train_names)
 
 
+def test_val_extra_dirs_join_the_monitor_but_not_the_split_nor_the_training(data_dir, tmp_path):
+    (tmp_path / "held_out.yaml").write_text("val: [ep001.h5]\ntest: [ep003.h5]\n")
+    extra = tmp_path / "val_extra"
+    extra.mkdir()
+    write_episode(extra / "ep300.h5", synthetic_episode(3, 3, 5, 3, 3, frames=11, seed=300))
+    common = ("epochs=1", f"split_from={tmp_path / 'held_out.yaml'}")
+    train(cfg_for("train", tiny(data_dir, tmp_path / "plain", *common)))
+    train(cfg_for("train", tiny(data_dir, tmp_path / "more", *common, f"val_extra_dirs=[{extra}]")))
+    plain, more = (checkpoint.load(tmp_path / r / "last.pt") for r in ("plain", "more"))
+    assert more["split"] == plain["split"] == {"train": ["ep000.h5", "ep002.h5"], "val": ["ep001.h5"],
+                                               "test": ["ep003.h5"]}  # evaluations' sets unchanged
+    (p,), (m,) = plain["history"], more["history"]
+    assert m["train_loss"] == p["train_loss"]  # not trained on: the same weights
+    # validated on: the monitor is the mean over the split's design and the extra one, as learn.evaluate measures it
+    report = evaluate(cfg_for("evaluate", [f"checkpoint={tmp_path / 'plain' / 'last.pt'}", f"data_dir={extra}",
+                                           "split=all", f"out_dir={tmp_path / 'ev'}", "timing_repeats=1",
+                                           "plots=false"]))
+    (design,) = report["designs"]
+    assert m["val_rollout"] == pytest.approx((p["val_rollout"] + design["max_rel_error"]) / 2, rel=1e-4)
+    assert m["val_rollout"] != pytest.approx(p["val_rollout"], rel=1e-3)
+    with pytest.raises(ValueError, match="val_extra_dirs: .*ep000.h5 has the name of an episode already read"):
+        train(cfg_for("train", tiny(data_dir, tmp_path / "twice", "epochs=1", f"val_extra_dirs=[{data_dir}]")))
+    with pytest.raises(ValueError, match="val_extra_dirs='x': must be a list"):
+        train(cfg_for("train", tiny(data_dir, tmp_path / "str", "epochs=1", "val_extra_dirs=x")))
+    with pytest.raises(FileNotFoundError, match="val_extra_dirs: .*nowhere'\\] not found .*make validation-data"):
+        train(cfg_for("train", tiny(data_dir, tmp_path / "gone", "epochs=1", f"val_extra_dirs=[{tmp_path / 'nowhere'}]")))
+
+
 @pytest.mark.parametrize("text, message", [
     ("val: [a.h5]\n", "must map val and test"),
     ("val: [a.h5]\ntest: [b.h5]\nvalidation: [c.h5]\n", "must map val and test"),
