@@ -503,7 +503,8 @@ def test_val_extra_dirs_join_the_monitor_but_not_the_split_nor_the_training(data
     with pytest.raises(ValueError, match="val_extra_dirs='x': must be a list"):
         train(cfg_for("train", tiny(data_dir, tmp_path / "str", "epochs=1", "val_extra_dirs=x")))
     with pytest.raises(FileNotFoundError, match="val_extra_dirs: .*nowhere'\\] not found .*make validation-data"):
-        train(cfg_for("train", tiny(data_dir, tmp_path / "gone", "epochs=1", f"val_extra_dirs=[{tmp_path / 'nowhere'}]")))
+        train(cfg_for("train", tiny(data_dir, tmp_path / "gone", "epochs=1",
+                                    f"val_extra_dirs=[{tmp_path / 'nowhere'}]")))
 
 
 @pytest.mark.parametrize("text, message", [
