@@ -453,14 +453,6 @@ def test_train_extra_dirs_add_training_designs_after_the_cut_and_resume_with_the
     assert split == {"train": ["ep000.h5", "ep200.h5"], "val": ["ep001.h5"], "test": ["ep003.h5"]}
     summary = train(cfg_for("train", tiny(data_dir, tmp_path / "run", *args)))  # resumes: reads the extra again
     assert summary["epochs_run"] == 2 and checkpoint.load(tmp_path / "run" / "last.pt")["split"] == split
-    with pytest.raises(ValueError, match="ep000.h5 has the name of an episode already read"):
-        train(cfg_for("train", tiny(data_dir, tmp_path / "twice", "epochs=1", f"train_extra_dirs=[{data_dir}]")))
-    with pytest.raises(ValueError, match="train_extra_dirs='x': must be a list"):
-        train(cfg_for("train", tiny(data_dir, tmp_path / "str", "epochs=1", "train_extra_dirs=x")))
-    with pytest.raises(FileNotFoundError, match="train_extra_dirs: .*nowhere'\\] not found"):
-        train(cfg_for("train", tiny(data_dir, tmp_path / "gone", "epochs=1",
-                                    f"train_extra_dirs=[{tmp_path / 'nowhere'}]")))
-    assert not any((tmp_path / r / "last.pt").exists() for r in ("twice", "str", "gone"))
     # the checkpoint's training designs are found where they were read: data_dir and the extra directory
     report = evaluate(cfg_for("evaluate", [f"checkpoint={tmp_path / 'run' / 'best.pt'}", "split=train",
                                            f"out_dir={tmp_path / 'ev'}", "timing_repeats=1", "plots=false"]))
@@ -498,13 +490,18 @@ def test_val_extra_dirs_join_the_monitor_but_not_the_split_nor_the_training(data
     (design,) = report["designs"]
     assert m["val_rollout"] == pytest.approx((p["val_rollout"] + design["max_rel_error"]) / 2, rel=1e-4)
     assert m["val_rollout"] != pytest.approx(p["val_rollout"], rel=1e-3)
-    with pytest.raises(ValueError, match="val_extra_dirs: .*ep000.h5 has the name of an episode already read"):
-        train(cfg_for("train", tiny(data_dir, tmp_path / "twice", "epochs=1", f"val_extra_dirs=[{data_dir}]")))
-    with pytest.raises(ValueError, match="val_extra_dirs='x': must be a list"):
-        train(cfg_for("train", tiny(data_dir, tmp_path / "str", "epochs=1", "val_extra_dirs=x")))
-    with pytest.raises(FileNotFoundError, match="val_extra_dirs: .*nowhere'\\] not found .*make validation-data"):
-        train(cfg_for("train", tiny(data_dir, tmp_path / "gone", "epochs=1",
-                                    f"val_extra_dirs=[{tmp_path / 'nowhere'}]")))
+
+
+@pytest.mark.parametrize("key, generate", [("train_extra_dirs", "make large-data"),
+                                           ("val_extra_dirs", "make validation-data")])
+def test_extra_dirs_are_refused_naming_the_key_before_any_run_is_written(data_dir, tmp_path, key, generate):
+    with pytest.raises(ValueError, match=f"{key}: .*ep000.h5 has the name of an episode already read"):
+        train(cfg_for("train", tiny(data_dir, tmp_path / "twice", "epochs=1", f"{key}=[{data_dir}]")))
+    with pytest.raises(ValueError, match=f"{key}='x': must be a list"):
+        train(cfg_for("train", tiny(data_dir, tmp_path / "str", "epochs=1", f"{key}=x")))
+    with pytest.raises(FileNotFoundError, match=f"{key}: .*nowhere'\\] not found .*{generate}"):
+        train(cfg_for("train", tiny(data_dir, tmp_path / "gone", "epochs=1", f"{key}=[{tmp_path / 'nowhere'}]")))
+    assert not any((tmp_path / r / "last.pt").exists() for r in ("twice", "str", "gone"))
 
 
 @pytest.mark.parametrize("text, message", [
