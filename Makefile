@@ -12,7 +12,7 @@ export OMPI_ALLOW_RUN_AS_ROOT=1
 export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset reference-data large-data validate fingerprint bench-fea stability bench-rollout tradeoff train evaluate reference-train reference-evaluate compare validity-calibration curves diagnose predict sweep learned-extremes clean
+.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset reference-data large-data validate fingerprint bench-fea stability bench-rollout tradeoff train evaluate reference-train finetune reference-evaluate compare validity-calibration curves diagnose predict sweep learned-extremes clean
 
 help:  ## list the targets
 	@grep -E '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-12s %s\n", $$1, $$2}'
@@ -64,6 +64,11 @@ evaluate:  ## roll out the trained model on the held-out split; report in runs/e
 
 reference-train:  ## the full-scale reference training (conf/experiment/reference.yaml; data from make reference-data; 2.2 h on one core for the [256, 128] default, session 36's runs/s36_ref348_e32; resumable)
 	$(PY) -m learn.train +experiment=reference $(ARGS)
+
+RUN ?= runs/finetune
+finetune:  ## carry CKPT on to every training design of data/ds_default + data/ds_large, monitored on data/ds_val too (conf/experiment/finetune.yaml; 4 epochs, ~46 min on one core at 945 designs; resumable) -> RUN
+	@test -n "$(CKPT)" || { echo "make finetune: CKPT=runs/<start>/best.pt (the trained start) is required" >&2; exit 2; }
+	$(PY) -m learn.train +experiment=finetune "init_from=$(CKPT)" run_dir=$(RUN) $(ARGS)
 
 REF ?= reports/reference
 reference-evaluate:  ## CKPT (or CKPT='[a.pt,b.pt]', an ensemble) on the 102 held-out designs: 52 pinned of data/ds_default + data/ds_heldout -> REF/102 (REF=reports/reference; timed as deployed, BACKEND=aot since session 38)

@@ -315,6 +315,9 @@ def train(cfg: DictConfig) -> dict:
 
 
 def _train(cfg: DictConfig, run_dir: Path) -> dict:
+    if cfg.get("init_required") and not cfg.get("init_from"):  # an experiment that carries a trained model on
+        raise ValueError("init_from: required by this experiment: the trained checkpoint it carries on, e.g. "
+                         "init_from=runs/<start>/best.pt")
     term_retention(retention_of(cfg))  # a bad value stops here, before any data is read
     ema_decay_checked(cfg.optim.get("ema_decay", 0.0))
     weight_decay_checked(cfg.optim.weight_decay)

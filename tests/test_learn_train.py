@@ -872,6 +872,29 @@ def test_the_medium_experiment_is_the_reference_on_the_first_260_episodes_in_one
     assert medium["train_designs"] == 260 - len(indices)
 
 
+def test_the_finetune_experiment_carries_a_start_on_with_the_reference_recipe_at_a_tenth_of_its_rate(data_dir,
+                                                                                                      tmp_path):
+    """conf/experiment/finetune.yaml (make finetune, sessions 44-45's runs): the reference recipe (model, split, loss)
+    with every training design, the large extras, ds_val's validation designs in the monitor, 4 epochs at 1e-4 dropped
+    at the half; without init_from it is refused, naming the key, before any checkpoint is written."""
+    reference = OmegaConf.to_container(cfg_for("train", ["+experiment=reference"]))
+    tune = OmegaConf.to_container(cfg_for("train", ["+experiment=finetune", "init_from=runs/start/best.pt"]))
+    assert {k for k in reference if tune[k] != reference[k]} == {
+        "init_from", "init_required", "run_dir", "train_designs", "train_extra_dirs", "val_extra_dirs", "epochs", "time_limit_min",
+        "optim"}
+    assert {k for k in reference["optim"] if tune["optim"][k] != reference["optim"][k]} == {"lr", "lr_drop_at"}
+    assert tune["optim"]["lr"] == reference["optim"]["lr"] / 10 and tune["optim"]["lr_drop_at"] == 0.5
+    assert tune["train_designs"] is None and tune["epochs"] == 4
+    assert tune["train_extra_dirs"] == ["data/ds_large"] and tune["val_extra_dirs"] == ["data/ds_val"]
+    missing = cfg_for("train", ["+experiment=finetune", f"data_dir={data_dir}", f"run_dir={tmp_path / 'run'}",
+                                "train_extra_dirs=[]", "val_extra_dirs=[]"])
+    with pytest.raises(ValueError, match="init_from: required by this experiment"):
+        train(missing)
+    assert not (tmp_path / "run" / "last.pt").exists()
+    make = subprocess.run(["make", "-C", str(REPO), "finetune", "PY=false"], capture_output=True, text=True)
+    assert make.returncode != 0 and "CKPT=runs/<start>/best.pt (the trained start) is required" in make.stderr
+
+
 def test_the_small_experiment_is_the_medium_one_on_the_episodes_generated_so_far(data_dir, tmp_path):
     """conf/experiment/small.yaml: the medium recipe with 5 rotations on whatever part of data/ds_default
     exists, the pinned held-out designs among it held out and the absent ones left out (split_missing=drop)."""
