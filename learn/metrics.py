@@ -25,18 +25,50 @@ def beam_chords(beam_state: torch.Tensor) -> torch.Tensor:
 
 
 GEOMETRY_LOSSES = ("columns", "points", "both")  # loss_geometry (conf/train.yaml): multistep_loss
+NOISE_SHAPES = ("columns", "rigid")  # noise_shape (conf/train.yaml): multistep_loss
+
+
+def noise_shape_checked(value) -> str:
+    if value not in NOISE_SHAPES:
+        raise ValueError(f"noise_shape={value!r}: must be {' | '.join(NOISE_SHAPES)} (columns: every column read on "
+                         "its own; rigid: every joint moved rigidly, its beams with it)")
+    return value
+
+
+def rigidly_displaced(model: Simulator, joint_state: torch.Tensor, beam_state: torch.Tensor, batch: GraphSet,
+                      noise_std: float, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """The states with every free joint moved rigidly by a random (v, omega) and its beams' sections with it
+    (learn.stiffness.rigidly_moved: the shape of the stiffness model's own step, so of its errors): no block
+    distorted, the fixed joint not moved (the model pins it). v ~ N(0, (noise_std s_v)^2) per axis, s_v the mean
+    step std of the joint centres (mm); omega ~ N(0, (noise_std s_w)^2) per axis (rad), s_w the mean step std of the
+    joints' vectors over their mean length, so a vector moves by about what noise_std of its step std moves it as a
+    column on its own."""
+    from learn.kinematics import POINTS
+    from learn.stiffness import rigidly_moved
+    joint_std = model.step_std()[0]
+    vector = POINTS[JOINT.name][:, 0] == 0  # [fields] the joint's vectors (corners, extrusion), not its centre
+    s_v = joint_std[JOINT.origin_slice].mean()
+    s_w = (joint_std[JOINT.geometry_slice].unflatten(-1, (-1, 3))[vector].mean()
+           / joint_state[..., JOINT.geometry_slice].unflatten(-1, (-1, 3))[..., vector, :].norm(dim=-1).mean())
+    free = 1.0 - batch.static.joint_bc[..., JOINT.bc.slice("fixed")]  # [J, 1]
+    shape = (*joint_state.shape[:-1], 3)
+    v = noise_std * s_v * free * torch.randn(shape, generator=generator)
+    omega = noise_std * s_w.detach() * free * torch.randn(shape, generator=generator)
+    return rigidly_moved(joint_state, beam_state, v, omega, batch.index.beam_ends(), model.beam_middle)
 
 
 def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_std: float = 0.0,
                    stress_weight: float = 1.0, generator: torch.Generator | None = None,
                    geometry: str = "columns", carry: float = 1.0, chord_weight: float = 0.0,
                    final_weight: float = 0.0, noise_every_step: bool = False,
-                   point_weight: float = 1.0) -> torch.Tensor:
+                   point_weight: float = 1.0, noise_shape: str = "columns") -> torch.Tensor:
     """Mean squared error of the states after 1..horizon steps from every start frame; `noise_std` (in units of
     the per-column step std) perturbs the start states so the model learns to correct its own drift;
     noise_every_step: also the state every later step starts from (the one the model reached), on the columns the
     network reads (geometry; stress too unless model.stress_input=false), so that each step is trained to bring a
-    displaced state back to the FEA's next frame, not only to continue it. A direct model
+    displaced state back to the FEA's next frame, not only to continue it. noise_shape "columns": each column
+    displaced on its own (which also distorts the blocks); "rigid": every free joint moved rigidly and its beams with
+    it (rigidly_displaced, the shape of the stiffness model's step), stress untouched. A direct model
     (model.update=direct) answers every frame 1..F-1 from frame 0 in one pass: the horizon and the carry do not apply.
     geometry="columns": every state column in units of its step std (stress columns weighted by stress_weight);
     geometry="points": the geometry as the points it rebuilds (what the evaluation measures), their distance to
@@ -61,7 +93,10 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
         h, S = 1, 1
     j, b = batch.joint_state[:S], batch.beam_state[:S]
     joint_std, beam_std = model.step_std()  # global columns in global step stds, whatever frame the network reads
-    if noise_std > 0:
+    rigid = noise_shape_checked(noise_shape) == "rigid"
+    if noise_std > 0 and rigid:
+        j, b = rigidly_displaced(model, j, b, batch, noise_std, generator)
+    elif noise_std > 0:
         j = j + noise_std * joint_std * torch.randn(j.shape, generator=generator)
         b = b + noise_std * beam_std * torch.randn(b.shape, generator=generator)
     point_w = {"columns": 0.0, "points": 1.0, "both": float(point_weight)}[geometry]  # the point term's weight
@@ -80,7 +115,9 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
         nj, nb = (noise_std * std * column_weights(spec, read) for std, spec in ((joint_std, JOINT), (beam_std, BEAM)))
     loss = torch.zeros(())
     for k in range(h):
-        if every and k > 0:  # the state the model reached, displaced
+        if every and k > 0 and rigid:  # the state the model reached, displaced
+            j, b = rigidly_displaced(model, j, b, batch, noise_std, generator)
+        elif every and k > 0:
             j = j + nj * torch.randn(j.shape, generator=generator)
             b = b + nb * torch.randn(b.shape, generator=generator)
         if carry == 0:

@@ -20,7 +20,7 @@ from learn.dataset import (GraphSet, TurnedSet, augment, augment_angles, episode
                            extra_dirs_checked, load_features, split_missing_checked, split_names)
 from learn.features import EpisodeFeatures
 from learn.gn import dropout_checked, fraction_checked
-from learn.metrics import multistep_loss, rollout_errors
+from learn.metrics import multistep_loss, noise_shape_checked, rollout_errors
 from learn.model import (Simulator, integer_in, passes_checked, rollout_lattice_turns_checked,
                          rollout_rotations_checked, term_retention)
 from learn.stiffness import beam_middle_checked
@@ -164,7 +164,8 @@ def loss_terms(cfg: DictConfig) -> dict:
             "point_weight": weight_checked(cfg, "point_weight", "no point term (loss_geometry=both)"),
             "chord_weight": weight_checked(cfg, "chord_weight", "no chord term"),
             "final_weight": weight_checked(cfg, "final_weight", "the final frame weighs as every other"),
-            "noise_every_step": flag_checked(cfg, "noise_every_step")}
+            "noise_every_step": flag_checked(cfg, "noise_every_step"),
+            "noise_shape": noise_shape_checked(cfg.get("noise_shape", "columns"))}
 
 
 AUTO_ROTATIONS = 10  # rotations: auto for a model that reads the global frame (the thesis' augmentation)

@@ -20,7 +20,7 @@ from learn import checkpoint
 from learn.evaluate import evaluate
 from learn.dataset import GraphSet, augment, load_features
 from learn.features import extract, rebuild_all_points
-from learn.graph import BEAM, JOINT
+from learn.graph import BEAM, JOINT, SECTIONS
 from learn.metrics import rollout_errors
 from learn.model import Simulator
 from learn.roll import roll
@@ -656,6 +656,59 @@ def test_noise_every_step_displaces_the_state_each_later_step_starts_from_on_the
                     geometry, stress = d[..., spec.geometry_slice], d[..., spec.stress_slice]
                     assert 0.4 < geometry.std() < 0.6 and abs(geometry.mean()) < 0.1
                     assert (stress.abs().max() > 0) == stress_input
+
+
+def test_rigid_noise_moves_every_free_joint_rigidly_with_its_beams_and_leaves_the_fixed_joint(tmp_path):
+    """noise_shape=rigid (learn.metrics.rigidly_displaced): every joint keeps its shape and every beam section its
+    own (the distances between a block's rebuilt points), the fixed joint and the stress columns do not move, the
+    joint centres move by noise_std x their step std per axis, the joints' vectors by about what that noise moves them
+    as columns; in the loss, the start and every later step displaced so (the state reached plus the displacement),
+    nothing with noise_std 0; a shape other than columns | rigid refused naming the key."""
+    from learn.features import BEAM_POINTS, JOINT_POINTS
+    from learn.kinematics import POINTS
+    from learn.metrics import multistep_loss, rigidly_displaced
+    data = GraphSet.build([extract(synthetic_episode(3, 3, 5, 3, 3, 4, seed=s)) for s in range(4)])
+    model = Simulator.fit({"core": "double_gn", "latent": 8, "widths": [16]}, data.joint_state, data.beam_state,
+                          data.static)
+    j, b = data.joint_state, data.beam_state  # [F, J, .], every frame as a start
+    noise = 0.5
+    with torch.no_grad():
+        mj, mb = rigidly_displaced(model, j, b, data, noise, torch.Generator().manual_seed(0))
+    J, B, nj, nb = j.shape[1], b.shape[1], len(JOINT_POINTS), len(BEAM_POINTS)
+
+    def blocks(jj, bb):  # [F, J, nj, 3] joints' points, [F, B, sections, points per section, 3] beams'
+        pts = rebuild_all_points(jj, bb)
+        return (pts[:, :J * nj].unflatten(1, (J, nj)),
+                pts[:, J * nj:].unflatten(1, (B, len(SECTIONS), nb // len(SECTIONS))))
+
+    for before, after in zip(blocks(j, b), blocks(mj, mb)):
+        gaps = lambda x: torch.cdist(x, x)  # noqa: E731  distances within a block (a section)
+        torch.testing.assert_close(gaps(after), gaps(before), atol=1e-3, rtol=1e-5)
+    torch.testing.assert_close(mj[..., JOINT.stress_slice], j[..., JOINT.stress_slice])
+    torch.testing.assert_close(mb[..., BEAM.stress_slice], b[..., BEAM.stress_slice])
+    fixed = data.static.joint_bc[:, JOINT.bc.slice("fixed")][:, 0] > 0
+    assert fixed.sum() == 4 and torch.equal(mj[:, fixed], j[:, fixed])
+    joint_std = model.step_std()[0]
+    moved = (mj - j)[:, ~fixed]
+    ratio = moved[..., JOINT.origin_slice].std() / (noise * joint_std[JOINT.origin_slice].mean())
+    assert 0.85 < ratio < 1.15  # 3 x 4 frames x 32 free joints draws
+    vector = POINTS[JOINT.name][:, 0] == 0
+    turned = moved[..., JOINT.geometry_slice].unflatten(-1, (-1, 3))[..., vector, :]
+    as_columns = noise * joint_std[JOINT.geometry_slice].unflatten(-1, (-1, 3))[vector].mean() * math.sqrt(3)
+    assert 0.5 < turned.norm(dim=-1).square().mean().sqrt() / as_columns < 1.2  # 2/3 of a column's in expectation
+    with torch.no_grad():
+        plain = multistep_loss(model, data, 3, 0.0, 0.1)
+        torch.testing.assert_close(multistep_loss(model, data, 3, 0.0, 0.1, noise_every_step=True,
+                                                  noise_shape="rigid"), plain)
+        gen = lambda: torch.Generator().manual_seed(1)  # noqa: E731
+        rigid = multistep_loss(model, data, 3, 0.5, 0.1, gen(), noise_every_step=True, noise_shape="rigid")
+        start_only = multistep_loss(model, data, 3, 0.5, 0.1, gen(), noise_shape="rigid")
+    assert torch.isfinite(rigid) and rigid != plain and start_only != rigid
+    with pytest.raises(ValueError, match="noise_shape='wobble': must be columns | rigid"):
+        multistep_loss(model, data, 3, 0.5, 0.1, noise_shape="wobble")
+    with pytest.raises(ValueError, match="noise_shape='wobble': must be columns | rigid"):
+        train(cfg_for("train", tiny(tmp_path / "no_data", tmp_path / "run", "noise_shape=wobble")))
+    assert not (tmp_path / "run" / "last.pt").exists()
 
 
 def test_the_final_weight_adds_the_final_frames_error_of_the_unroll_that_reaches_it():
