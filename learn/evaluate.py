@@ -251,8 +251,8 @@ def mark_departures(designs: list[dict], departed: list[dict], allowed: float, b
                                          f"answer; compiled answer's max error {100 * d['compiled_max_rel_error']:.3g} %"]
 
 
-def fraction_checked(value, name: str) -> float:
-    """A fraction of the designs in [0, 1]."""
+def share_of_designs_checked(value, name: str) -> float:
+    """A share of the evaluated designs in [0, 1] (1 included, unlike learn.gn.fraction_checked's rates)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= 1:
         raise ValueError(f"{name}={value!r}: allowed is a fraction of the designs in [0, 1], e.g. 0.05")
     return float(value)
@@ -287,7 +287,7 @@ def split_paths(split: str, stored: dict[str, list[str]], data_dir: Path, source
 def evaluate(cfg: DictConfig) -> dict:
     torch.set_num_threads(int(cfg.threads))
     backend = backend_checked(cfg.get("rollout_backend", "torchscript"))  # refused before any rollout
-    allowed = fraction_checked(cfg.get("compiled_departures", 0.05), "compiled_departures")
+    allowed = share_of_designs_checked(cfg.get("compiled_departures", 0.05), "compiled_departures")
     sources = ensemble.checkpoint_paths(cfg.checkpoint)
     model, ckpt = ensemble.load(sources)
     model.answer_with(cfg.rollout_rotations, cfg.rollout_mirror, cfg.rollout_lattice_turns)
