@@ -22,8 +22,8 @@ from learn.evaluate import design_statistics, finite_or_null, markdown
 log = logging.getLogger(__name__)
 WEIGHTED = ("rollout_ms_per_design", "rollout_ms_per_design_eager", "rollout_ms_per_design_batched",
             "fea_s_per_episode")
-SAME = ("checkpoint", "model", "threads", "steps", "welded", "validity_thresholds")
-ABSENT = {"welded": False}  # what a report written before the key was added measured
+SAME = ("checkpoint", "model", "threads", "steps", "welded", "validity_thresholds", "rollout_backend")
+ABSENT = {"welded": False, "rollout_backend": "torchscript"}  # what a report written before the key was added measured
 
 
 def read_report(path: str | Path) -> dict:

@@ -382,7 +382,7 @@ def test_combine_pools_reports_of_one_model_over_the_union_of_designs(trained, d
     """learn.combine: the val and test reports pooled equal the val+test report's distributions (same designs);
     reports of two different checkpoints or the same design twice are refused."""
     from learn.combine import combine
-    from learn.evaluate import by_frame
+    from learn.evaluate import by_frame, markdown
     run, _ = trained
     base = [f"checkpoint={run / 'best.pt'}", f"data_dir={data_dir}", "timing_repeats=1", "plots=false"]
     parts = {s: evaluate(cfg_for("evaluate", base + [f"out_dir={tmp_path / s}", f"split={s}"]))
@@ -404,6 +404,11 @@ def test_combine_pools_reports_of_one_model_over_the_union_of_designs(trained, d
         combine([parts["val"], parts["val+test"]])
     with pytest.raises(ValueError, match="differ in 'checkpoint'"):
         combine([parts["val"], {**parts["test"], "checkpoint": "other.pt"}])
+    assert pooled["rollout_backend"] == "torchscript" and "(torchscript, 1 thread" in markdown(pooled)
+    aot = combine([{**parts["val"], "rollout_backend": "aot"}, {**parts["test"], "rollout_backend": "aot"}])
+    assert aot["rollout_backend"] == "aot" and "(aot, 1 thread" in markdown(aot)  # the pooled timing's backend
+    with pytest.raises(ValueError, match="differ in 'rollout_backend'"):
+        combine([{**parts["val"], "rollout_backend": "aot"}, parts["test"]])
     with pytest.raises(ValueError, match="at least 2"):
         combine([parts["val"]])
     subprocess.run([sys.executable, "-m", "learn.combine", f"reports=[{tmp_path / 'val'},{tmp_path / 'test'}]",
