@@ -35,8 +35,16 @@ def noise_shape_checked(value) -> str:
     return value
 
 
+def noise_placement_checked(noise_std: float, start: bool, every_step: bool) -> None:
+    """noise_std > 0 must displace some state: the start (noise_start) or the later steps' (noise_every_step)."""
+    if noise_std > 0 and not start and not every_step:
+        raise ValueError(f"noise_start=false with noise_every_step=false and noise_std={noise_std:g}: no state would "
+                         "be displaced; set noise_every_step=true (noise on the later steps only) or noise_std=0")
+
+
 def rigidly_displaced(model: Simulator, joint_state: torch.Tensor, beam_state: torch.Tensor, batch: GraphSet,
-                      noise_std: float, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                      noise_std: float, generator: torch.Generator | None = None,
+                      joint_std: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """The states with every free joint moved rigidly by a random (v, omega) and its beams' sections with it
     (learn.stiffness.rigidly_moved: the shape of the stiffness model's own step, so of its errors): no block
     distorted, the fixed joint not moved (the model pins it). v ~ N(0, (noise_std s_v)^2) per axis, s_v the mean
@@ -45,7 +53,7 @@ def rigidly_displaced(model: Simulator, joint_state: torch.Tensor, beam_state: t
     column on its own."""
     from learn.kinematics import POINTS
     from learn.stiffness import rigidly_moved
-    joint_std = model.step_std()[0]
+    joint_std = model.step_std()[0] if joint_std is None else joint_std
     vector = POINTS[JOINT.name][:, 0] == 0  # [fields] the joint's vectors (corners, extrusion), not its centre
     s_v = joint_std[JOINT.origin_slice].mean()
     s_w = (joint_std[JOINT.geometry_slice].unflatten(-1, (-1, 3))[vector].mean()
@@ -61,14 +69,17 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
                    stress_weight: float = 1.0, generator: torch.Generator | None = None,
                    geometry: str = "columns", carry: float = 1.0, chord_weight: float = 0.0,
                    final_weight: float = 0.0, noise_every_step: bool = False,
-                   point_weight: float = 1.0, noise_shape: str = "columns") -> torch.Tensor:
+                   point_weight: float = 1.0, noise_shape: str = "columns",
+                   noise_start: bool = True) -> torch.Tensor:
     """Mean squared error of the states after 1..horizon steps from every start frame; `noise_std` (in units of
     the per-column step std) perturbs the start states so the model learns to correct its own drift;
     noise_every_step: also the state every later step starts from (the one the model reached), on the columns the
     network reads (geometry; stress too unless model.stress_input=false), so that each step is trained to bring a
     displaced state back to the FEA's next frame, not only to continue it. noise_shape "columns": each column
     displaced on its own (which also distorts the blocks); "rigid": every free joint moved rigidly and its beams with
-    it (rigidly_displaced, the shape of the stiffness model's step), stress untouched. A direct model
+    it (rigidly_displaced, the shape of the stiffness model's step), stress untouched. noise_start=false: the start
+    states exact (the flat design the answer starts from is), only the later steps' displaced (with
+    noise_every_step; without it there would be no noise at all, refused). A direct model
     (model.update=direct) answers every frame 1..F-1 from frame 0 in one pass: the horizon and the carry do not apply.
     geometry="columns": every state column in units of its step std (stress columns weighted by stress_weight);
     geometry="points": the geometry as the points it rebuilds (what the evaluation measures), their distance to
@@ -94,11 +105,16 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
     j, b = batch.joint_state[:S], batch.beam_state[:S]
     joint_std, beam_std = model.step_std()  # global columns in global step stds, whatever frame the network reads
     rigid = noise_shape_checked(noise_shape) == "rigid"
-    if noise_std > 0 and rigid:
-        j, b = rigidly_displaced(model, j, b, batch, noise_std, generator)
-    elif noise_std > 0:
-        j = j + noise_std * joint_std * torch.randn(j.shape, generator=generator)
-        b = b + noise_std * beam_std * torch.randn(b.shape, generator=generator)
+
+    def displaced(j, b, nj, nb):
+        """The states displaced by noise of noise_shape: rigid, or per column with the stds nj, nb (raw units)."""
+        if rigid:
+            return rigidly_displaced(model, j, b, batch, noise_std, generator, joint_std)
+        return (j + nj * torch.randn(j.shape, generator=generator), b + nb * torch.randn(b.shape, generator=generator))
+
+    noise_placement_checked(noise_std, noise_start, noise_every_step)
+    if noise_std > 0 and noise_start:
+        j, b = displaced(j, b, noise_std * joint_std, noise_std * beam_std)
     point_w = {"columns": 0.0, "points": 1.0, "both": float(point_weight)}[geometry]  # the point term's weight
     wj, wb = column_weights(JOINT, stress_weight), column_weights(BEAM, stress_weight)
     if geometry == "points":
@@ -115,11 +131,8 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
         nj, nb = (noise_std * std * column_weights(spec, read) for std, spec in ((joint_std, JOINT), (beam_std, BEAM)))
     loss = torch.zeros(())
     for k in range(h):
-        if every and k > 0 and rigid:  # the state the model reached, displaced
-            j, b = rigidly_displaced(model, j, b, batch, noise_std, generator)
-        elif every and k > 0:
-            j = j + nj * torch.randn(j.shape, generator=generator)
-            b = b + nb * torch.randn(b.shape, generator=generator)
+        if every and k > 0:  # the state the model reached, displaced
+            j, b = displaced(j, b, nj, nb)
         if carry == 0:
             j, b = j.detach(), b.detach()
         elif carry < 1:  # the same states forward, carry x the gradient backward

@@ -20,7 +20,7 @@ from learn.dataset import (GraphSet, TurnedSet, augment, augment_angles, episode
                            extra_dirs_checked, load_features, split_missing_checked, split_names)
 from learn.features import EpisodeFeatures
 from learn.gn import dropout_checked, fraction_checked
-from learn.metrics import multistep_loss, noise_shape_checked, rollout_errors
+from learn.metrics import multistep_loss, noise_placement_checked, noise_shape_checked, rollout_errors
 from learn.model import (Simulator, integer_in, passes_checked, rollout_lattice_turns_checked,
                          rollout_rotations_checked, term_retention)
 from learn.stiffness import beam_middle_checked
@@ -160,12 +160,15 @@ def precision_of(name, flags: set[str] | None = None) -> str:
 def loss_terms(cfg: DictConfig) -> dict:
     """What the loss weighs besides the state columns (learn.metrics.multistep_loss keywords), for training and
     validation alike."""
-    return {"geometry": cfg.get("loss_geometry", "columns"),
-            "point_weight": weight_checked(cfg, "point_weight", "no point term (loss_geometry=both)"),
-            "chord_weight": weight_checked(cfg, "chord_weight", "no chord term"),
-            "final_weight": weight_checked(cfg, "final_weight", "the final frame weighs as every other"),
-            "noise_every_step": flag_checked(cfg, "noise_every_step"),
-            "noise_shape": noise_shape_checked(cfg.get("noise_shape", "columns"))}
+    terms = {"geometry": cfg.get("loss_geometry", "columns"),
+             "point_weight": weight_checked(cfg, "point_weight", "no point term (loss_geometry=both)"),
+             "chord_weight": weight_checked(cfg, "chord_weight", "no chord term"),
+             "final_weight": weight_checked(cfg, "final_weight", "the final frame weighs as every other"),
+             "noise_every_step": flag_checked(cfg, "noise_every_step"),
+             "noise_start": flag_checked(cfg, "noise_start", absent=True),
+             "noise_shape": noise_shape_checked(cfg.get("noise_shape", "columns"))}
+    noise_placement_checked(cfg.get("noise_std", 0.0), terms["noise_start"], terms["noise_every_step"])
+    return terms
 
 
 AUTO_ROTATIONS = 10  # rotations: auto for a model that reads the global frame (the thesis' augmentation)
@@ -184,10 +187,10 @@ def rotations_of(cfg: DictConfig) -> int:
     return value
 
 
-def flag_checked(cfg: DictConfig, name: str) -> bool:
-    """A true/false key of conf/train.yaml (false when absent, as in configs saved before it), else an error naming
-    it."""
-    value = cfg.get(name, False)
+def flag_checked(cfg: DictConfig, name: str, absent: bool = False) -> bool:
+    """A true/false key of conf/train.yaml (`absent` when absent, as in configs saved before it), else an error
+    naming it."""
+    value = cfg.get(name, absent)
     if not isinstance(value, bool):
         raise ValueError(f"{name}={value!r}: must be true or false")
     return value

@@ -661,6 +661,18 @@ def test_noise_every_step_displaces_the_state_each_later_step_starts_from_on_the
                     geometry, stress = d[..., spec.geometry_slice], d[..., spec.stress_slice]
                     assert 0.4 < geometry.std() < 0.6 and abs(geometry.mean()) < 0.1
                     assert (stress.abs().max() > 0) == stress_input
+        # noise_start=false: the first step starts from the FEA's frames exactly, the later ones as with it
+        seen.clear()
+        multistep_loss(model, data, 3, 0.5, 0.1, torch.Generator().manual_seed(0), noise_every_step=True,
+                       noise_start=False)
+        S = len(data.t) - 3
+        assert torch.equal(seen[0][0][0], data.joint_state[:S]) and torch.equal(seen[0][0][1], data.beam_state[:S])
+        for (inputs, _), (_, reached) in zip(seen[1:], seen[:-1]):
+            d = (inputs[0] - reached[0]) / model.joint_delta.std
+            assert 0.4 < d[..., JOINT.geometry_slice].std() < 0.6
+        with pytest.raises(ValueError, match="noise_start=false with noise_every_step=false and noise_std=0.5"):
+            multistep_loss(model, data, 3, 0.5, 0.1, noise_start=False)
+        torch.testing.assert_close(multistep_loss(model, data, 3, 0.0, 0.1, noise_start=False), clean)
 
 
 def test_rigid_noise_moves_every_free_joint_rigidly_with_its_beams_and_leaves_the_fixed_joint(tmp_path):
@@ -748,12 +760,15 @@ def test_an_unknown_loss_geometry_is_refused(data_dir, tmp_path):
                                              ("final_weight=-0.5",
                                               r"final_weight=-0.5: must be a number in \[0, 100\]"),
                                              ("noise_every_step=2", "noise_every_step=2: must be true or false"),
+                                             ("noise_start=2", "noise_start=2: must be true or false"),
+                                             ("noise_start=false noise_std=0.1",  # and no noise_every_step
+                                              "noise_start=false with noise_every_step=false and noise_std=0.1"),
                                              ("train_probe=-1", r"train_probe=-1: must be an integer in \[0, "),
                                              ("rollout_gradient=1.5", r"rollout_gradient=1.5: must be through \| stop"),
                                              ("rollout_gradient=back", r"rollout_gradient='back': must be through")])
 def test_a_bad_augmentation_option_is_refused_naming_it(data_dir, tmp_path, option, message):
     with pytest.raises(ValueError, match=message):
-        train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=1", option)))
+        train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=1", *option.split())))
 
 
 def test_sweep_appends_one_row_per_run(data_dir, tmp_path):
