@@ -234,6 +234,42 @@ def weight_checked(cfg: DictConfig, name: str, meaning: str) -> float:
     return float(w)
 
 
+def number_checked(value, name: str, low: float, high: float, meaning: str, low_open: bool = False) -> float:
+    """A number in [low, high] ((low, high] with low_open), else an error naming the key and the range."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or \
+            not (low < value if low_open else low <= value) or value > high:
+        bracket = "(" if low_open else "["
+        raise ValueError(f"{name}={value!r}: must be a number in {bracket}{low:g}, {high:g}] ({meaning})")
+    return float(value)
+
+
+MONITORS = ("val_rollout", "val_loss")
+
+
+def run_options_checked(cfg: DictConfig) -> None:
+    """The run's counts, rates and the monitor (conf/train.yaml, conf/optim/), each refused with its key and range
+    before any data are read: a bad one would otherwise stop the run an epoch in (monitor), be read as something
+    else (a negative noise_std or batch_size as none) or train with a negative loss weight (stress_weight)."""
+    integer_in(cfg.epochs, "epochs", 1, 10**6, "passes over the augmented training set")
+    if cfg.batch_size is not None:
+        integer_in(cfg.batch_size, "batch_size", 0, 10**9, "episode rotations per mini-batch; 0 = the whole set")
+    integer_in(cfg.patience, "patience", 1, 10**6, "epochs without improvement before stopping")
+    integer_in(cfg.rollout_horizon, "rollout_horizon", 1, 1000, "steps unrolled per sample; at most an episode's")
+    integer_in(cfg.checkpoint_every, "checkpoint_every", 1, 10**6, "epochs between last.pt saves")
+    integer_in(cfg.log_every, "log_every", 1, 10**6, "epochs between log lines")
+    if cfg.monitor not in MONITORS:
+        raise ValueError(f"monitor={cfg.monitor!r}: must be one of {' | '.join(MONITORS)}")
+    number_checked(cfg.get("noise_std", 0.0), "noise_std", 0, 10, "input noise in step stds; 0 = none")
+    weight_checked(cfg, "stress_weight", "stress not fitted")
+    number_checked(cfg.optim.lr, "optim.lr", 0, 1, "Adam's base learning rate", low_open=True)
+    number_checked(cfg.optim.lr_drop_factor, "optim.lr_drop_factor", 0, 1, "the rate's factor late; 1 = no drop",
+                   low_open=True)
+    number_checked(cfg.optim.lr_drop_at, "optim.lr_drop_at", 0, 1, "the fraction of the epochs the drop comes at")
+    if cfg.get("time_limit_min") is not None:
+        number_checked(cfg.time_limit_min, "time_limit_min", 0, 10**6, "minutes before a resumable pause",
+                       low_open=True)
+
+
 def training_loss(model: Simulator, batch: GraphSet, cfg: DictConfig, generator: torch.Generator) -> torch.Tensor:
     """The loss a training step descends: the multi-step loss over `rollout_horizon` steps, plus, at
     `teacher_weight`, the one-step loss from every FEA frame (teacher forcing), which holds each step to the FEA's
@@ -335,6 +371,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
     split_missing_checked(cfg.get("split_missing", "error"))
     n_probe = integer_in(cfg.get("train_probe", 0), "train_probe", 0, 10**6,
                          "training designs whose rollout error is logged every epoch; 0 = none")
+    run_options_checked(cfg)
     loss_terms(cfg)  # its weights, and the teacher's below, checked before any data are read
     weight_checked(cfg, "teacher_weight", "no one-step term")
     last = run_dir / LAST
