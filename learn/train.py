@@ -265,6 +265,7 @@ def run_options_checked(cfg: DictConfig) -> None:
     number_checked(cfg.optim.lr_drop_factor, "optim.lr_drop_factor", 0, 1, "the rate's factor late; 1 = no drop",
                    low_open=True)
     number_checked(cfg.optim.lr_drop_at, "optim.lr_drop_at", 0, 1, "the fraction of the epochs the drop comes at")
+    number_checked(cfg.optim.get("grad_clip", 0.0), "optim.grad_clip", 0, 1e6, "the largest gradient norm; 0 = off")
     if cfg.get("time_limit_min") is not None:
         number_checked(cfg.time_limit_min, "time_limit_min", 0, 10**6, "minutes before a resumable pause",
                        low_open=True)
