@@ -19,7 +19,7 @@ from data_schema import atomic
 from learn import ensemble
 from learn.dataset import design_paths, episode_paths, load_features
 from learn.features import EpisodeFeatures, rebuild_all_points
-from learn.model import Simulator
+from learn.model import Simulator, integer_in
 from learn.roll import ONE_KIND, ROLLED, roll
 from learn.aot import backend_checked
 from learn.rollout import (answer_unroll, compile_rollout, graph_inputs, input_floor, plain_inputs, reference,
@@ -285,7 +285,8 @@ def split_paths(split: str, stored: dict[str, list[str]], data_dir: Path, source
 
 
 def evaluate(cfg: DictConfig) -> dict:
-    torch.set_num_threads(int(cfg.threads))
+    torch.set_num_threads(integer_in(cfg.threads, "threads", 1, 1024, "torch threads while rolling out and timing"))
+    repeats = integer_in(cfg.timing_repeats, "timing_repeats", 1, 1000, "timed rollouts per design, median taken")
     backend = backend_checked(cfg.get("rollout_backend", "torchscript"))  # refused before any rollout
     allowed = share_of_designs_checked(cfg.get("compiled_departures", 0.05), "compiled_departures")
     sources = ensemble.checkpoint_paths(cfg.checkpoint)
@@ -324,7 +325,7 @@ def evaluate(cfg: DictConfig) -> dict:
                if f.actuators in ONE_KIND else {})})
         rollouts.append(r)
 
-    times = timings(model, features, int(cfg.timing_repeats), backend, cfg.get("aot_cache"))
+    times = timings(model, features, repeats, backend, cfg.get("aot_cache"))
     mark_departures(designs, times["departures"], allowed, backend)
     rollout_s, batched_s = times["compiled"], times["batched"]
     fea_s = float(np.nanmean([f.fea_seconds for f in features])) if any(

@@ -294,6 +294,16 @@ def test_a_design_whose_compiled_rollout_departs_from_eager_is_flagged_and_the_o
         evaluate(cfg_for("evaluate", [*args, f"out_dir={tmp_path / 'x'}", "compiled_departures=1.5"]))
 
 
+@pytest.mark.parametrize("option, message", [("threads=0", r"threads=0: must be an integer in \[1, 1024\]"),
+                                             ("timing_repeats=0", r"timing_repeats=0: must be an integer in \[1, "),
+                                             ("timing_repeats=2.5", r"timing_repeats=2.5: must be an integer in \[1, ")])
+def test_evaluate_refuses_a_bad_count_before_reading_anything(tmp_path, option, message):
+    missing = tmp_path / "no_such_run" / "best.pt"  # refused before the checkpoint is even looked for
+    with pytest.raises(ValueError, match=message):
+        evaluate(cfg_for("evaluate", [f"checkpoint={missing}", f"out_dir={tmp_path / 'out'}", option]))
+    assert not (tmp_path / "out").exists()
+
+
 def test_evaluate_reports_the_roll_of_every_all_one_kind_design_beside_the_feas(trained, tmp_path):
     run, _ = trained
     ep = synthetic_episode(3, 3, 5, 3, 3, frames=11, seed=7)
