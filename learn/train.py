@@ -239,7 +239,9 @@ def number_checked(value, name: str, low: float, high: float, meaning: str, low_
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or \
             not (low < value if low_open else low <= value) or value > high:
         bracket = "(" if low_open else "["
-        raise ValueError(f"{name}={value!r}: must be a number in {bracket}{low:g}, {high:g}] ({meaning})")
+        allowed = f"> {low:g}" if low_open else f">= {low:g}"
+        allowed = f"a number {allowed}" if math.isinf(high) else f"a number in {bracket}{low:g}, {high:g}]"
+        raise ValueError(f"{name}={value!r}: must be {allowed} ({meaning})")
     return float(value)
 
 
@@ -250,7 +252,8 @@ def run_options_checked(cfg: DictConfig) -> None:
     """The run's counts, rates and the monitor (conf/train.yaml, conf/optim/), each refused with its key and range
     before any data are read: a bad one would otherwise stop the run an epoch in (monitor), be read as something
     else (a negative noise_std or batch_size as none) or train with a negative loss weight (stress_weight)."""
-    integer_in(cfg.epochs, "epochs", 1, 10**6, "passes over the augmented training set")
+    integer_in(cfg.epochs, "epochs", 0, 10**6, "passes over the augmented training set; 0 = the run prepared "
+               "(split, PCA, normalisers, start weights) without one")
     if cfg.batch_size is not None:
         integer_in(cfg.batch_size, "batch_size", 0, 10**9, "episode rotations per mini-batch; 0 = the whole set")
     integer_in(cfg.patience, "patience", 1, 10**6, "epochs without improvement before stopping")
@@ -261,13 +264,13 @@ def run_options_checked(cfg: DictConfig) -> None:
         raise ValueError(f"monitor={cfg.monitor!r}: must be one of {' | '.join(MONITORS)}")
     number_checked(cfg.get("noise_std", 0.0), "noise_std", 0, 10, "input noise in step stds; 0 = none")
     weight_checked(cfg, "stress_weight", "stress not fitted")
-    number_checked(cfg.optim.lr, "optim.lr", 0, 1, "Adam's base learning rate", low_open=True)
+    number_checked(cfg.optim.lr, "optim.lr", 0, math.inf, "Adam's base learning rate", low_open=True)
     number_checked(cfg.optim.lr_drop_factor, "optim.lr_drop_factor", 0, 1, "the rate's factor late; 1 = no drop",
                    low_open=True)
     number_checked(cfg.optim.lr_drop_at, "optim.lr_drop_at", 0, 1, "the fraction of the epochs the drop comes at")
-    number_checked(cfg.optim.get("grad_clip", 0.0), "optim.grad_clip", 0, 1e6, "the largest gradient norm; 0 = off")
+    number_checked(cfg.optim.get("grad_clip", 0.0), "optim.grad_clip", 0, math.inf, "the largest gradient norm; 0 = off")
     if cfg.get("time_limit_min") is not None:
-        number_checked(cfg.time_limit_min, "time_limit_min", 0, 10**6, "minutes before a resumable pause",
+        number_checked(cfg.time_limit_min, "time_limit_min", 0, math.inf, "minutes before a resumable pause",
                        low_open=True)
 
 

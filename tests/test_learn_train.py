@@ -780,16 +780,16 @@ def test_an_unknown_loss_geometry_is_refused(data_dir, tmp_path):
                                              ("noise_std=abc", r"noise_std='abc': must be a number in \[0, 10\]"),
                                              ("stress_weight=-1", r"stress_weight=-1: must be a number in \[0, 100\]"),
                                              ("monitor=val_los", "monitor='val_los': must be one of val_rollout"),
-                                             ("epochs=0", r"epochs=0: must be an integer in \[1, "),
+                                             ("epochs=-1", r"epochs=-1: must be an integer in \[0, "),
                                              ("batch_size=-2", r"batch_size=-2: must be an integer in \[0, "),
                                              ("patience=2.5", r"patience=2.5: must be an integer in \[1, "),
                                              ("rollout_horizon=0", r"rollout_horizon=0: must be an integer in \[1, "),
-                                             ("optim.lr=0", r"optim.lr=0: must be a number in \(0, 1\]"),
+                                             ("optim.lr=0", r"optim.lr=0: must be a number > 0 \(Adam's"),
                                              ("optim.lr_drop_factor=2",
                                               r"optim.lr_drop_factor=2: must be a number in \(0, 1\]"),
                                              ("optim.lr_drop_at=1.5", r"optim.lr_drop_at=1.5: must be a number in \[0, 1\]"),
-                                             ("optim.grad_clip=-1", r"optim.grad_clip=-1: must be a number in \[0, "),
-                                             ("time_limit_min=0", r"time_limit_min=0: must be a number in \(0, ")])
+                                             ("optim.grad_clip=-1", r"optim.grad_clip=-1: must be a number >= 0 "),
+                                             ("time_limit_min=0", r"time_limit_min=0: must be a number > 0 ")])
 def test_a_bad_augmentation_option_is_refused_naming_it(data_dir, tmp_path, option, message):
     with pytest.raises(ValueError, match=message):
         train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=1", *option.split())))
