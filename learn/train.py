@@ -226,23 +226,21 @@ def extra_designs(dirs: list[Path], names: set[str], key: str) -> list[EpisodeFe
     return extra
 
 
-def weight_checked(cfg: DictConfig, name: str, meaning: str) -> float:
-    """A loss weight from conf/train.yaml: a number in [0, 100], else an error naming the key."""
-    w = cfg.get(name, 0.0)
-    if isinstance(w, bool) or not isinstance(w, (int, float)) or not 0 <= w <= 100:
-        raise ValueError(f"{name}={w!r}: must be a number in [0, 100] (0 = {meaning})")
-    return float(w)
-
-
 def number_checked(value, name: str, low: float, high: float, meaning: str, low_open: bool = False) -> float:
     """A number in [low, high] ((low, high] with low_open), else an error naming the key and the range."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or \
             not (low < value if low_open else low <= value) or value > high:
-        bracket = "(" if low_open else "["
-        allowed = f"> {low:g}" if low_open else f">= {low:g}"
-        allowed = f"a number {allowed}" if math.isinf(high) else f"a number in {bracket}{low:g}, {high:g}]"
+        if math.isinf(high):
+            allowed = f"a number {'>' if low_open else '>='} {low:g}"
+        else:
+            allowed = f"a number in {'(' if low_open else '['}{low:g}, {high:g}]"
         raise ValueError(f"{name}={value!r}: must be {allowed} ({meaning})")
     return float(value)
+
+
+def weight_checked(cfg: DictConfig, name: str, meaning: str) -> float:
+    """A loss weight from conf/train.yaml: a number in [0, 100], else an error naming the key."""
+    return number_checked(cfg.get(name, 0.0), name, 0, 100, f"0 = {meaning}")
 
 
 MONITORS = ("val_rollout", "val_loss")
@@ -264,6 +262,7 @@ def run_options_checked(cfg: DictConfig) -> None:
         raise ValueError(f"monitor={cfg.monitor!r}: must be one of {' | '.join(MONITORS)}")
     number_checked(cfg.get("noise_std", 0.0), "noise_std", 0, 10, "input noise in step stds; 0 = none")
     weight_checked(cfg, "stress_weight", "stress not fitted")
+    weight_checked(cfg, "teacher_weight", "no one-step term")
     number_checked(cfg.optim.lr, "optim.lr", 0, math.inf, "Adam's base learning rate", low_open=True)
     number_checked(cfg.optim.lr_drop_factor, "optim.lr_drop_factor", 0, 1, "the rate's factor late; 1 = no drop",
                    low_open=True)
@@ -376,8 +375,7 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
     n_probe = integer_in(cfg.get("train_probe", 0), "train_probe", 0, 10**6,
                          "training designs whose rollout error is logged every epoch; 0 = none")
     run_options_checked(cfg)
-    loss_terms(cfg)  # its weights, and the teacher's below, checked before any data are read
-    weight_checked(cfg, "teacher_weight", "no one-step term")
+    loss_terms(cfg)  # its weights checked before any data are read
     last = run_dir / LAST
     resumed = checkpoint.load(last) if cfg.resume and last.exists() else None
     if resumed is not None and resumed.get("finished"):

@@ -790,7 +790,7 @@ def test_an_unknown_loss_geometry_is_refused(data_dir, tmp_path):
                                              ("optim.lr_drop_at=1.5", r"optim.lr_drop_at=1.5: must be a number in \[0, 1\]"),
                                              ("optim.grad_clip=-1", r"optim.grad_clip=-1: must be a number >= 0 "),
                                              ("time_limit_min=0", r"time_limit_min=0: must be a number > 0 ")])
-def test_a_bad_augmentation_option_is_refused_naming_it(data_dir, tmp_path, option, message):
+def test_a_bad_training_option_is_refused_naming_it(data_dir, tmp_path, option, message):
     with pytest.raises(ValueError, match=message):
         train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=1", *option.split())))
     assert not (tmp_path / "last.pt").exists()  # refused before training, nothing written
