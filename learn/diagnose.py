@@ -33,6 +33,7 @@ from omegaconf import DictConfig
 
 from data_schema import atomic
 from learn import checkpoint
+from learn.checks import integer_in
 from learn.dataset import GraphSet, design_paths, load_features
 from learn.features import BEAM_POINTS, JOINT_POINTS, rebuild_all_points
 from learn.metrics import beam_chords, fea_points, max_per_item, point_owner
@@ -209,7 +210,7 @@ def plot(report: dict, path: Path) -> None:
 
 
 def diagnose(cfg: DictConfig) -> dict:
-    torch.set_num_threads(int(cfg.threads))
+    torch.set_num_threads(integer_in(cfg.threads, "threads", 1, 1024, "torch threads"))
     ckpt = checkpoint.load(cfg.checkpoint)
     model = checkpoint.model_from(ckpt)
     data_dir = Path(cfg.data_dir or ckpt["config"]["data_dir"])

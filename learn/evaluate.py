@@ -19,7 +19,8 @@ from data_schema import atomic
 from learn import ensemble
 from learn.dataset import design_paths, episode_paths, load_features
 from learn.features import EpisodeFeatures, rebuild_all_points
-from learn.model import Simulator, integer_in
+from learn.checks import integer_in, number_in
+from learn.model import Simulator
 from learn.roll import ONE_KIND, ROLLED, roll
 from learn.aot import backend_checked
 from learn.rollout import (answer_unroll, compile_rollout, graph_inputs, input_floor, plain_inputs, reference,
@@ -253,16 +254,12 @@ def mark_departures(designs: list[dict], departed: list[dict], allowed: float, b
 
 def share_of_designs_checked(value, name: str) -> float:
     """A share of the evaluated designs in [0, 1] (1 included, unlike learn.gn.fraction_checked's rates)."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= 1:
-        raise ValueError(f"{name}={value!r}: allowed is a fraction of the designs in [0, 1], e.g. 0.05")
-    return float(value)
+    return number_in(value, name, 0, 1, "a fraction of the designs, e.g. 0.05")
 
 
 def flag_error_rel_checked(value, name: str = "flag_error_rel") -> float:
     """An error level a flag is judged against: a fraction of the design size in (0, 1)."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < 1:
-        raise ValueError(f"{name}={value!r}: allowed is a fraction of the design size in (0, 1), e.g. 0.10")
-    return float(value)
+    return number_in(value, name, 0, 1, "a fraction of the design size, e.g. 0.10", low_open=True, high_open=True)
 
 
 def split_paths(split: str, stored: dict[str, list[str]], data_dir: Path, source: str,

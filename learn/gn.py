@@ -4,6 +4,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from learn.checks import number_in
 from learn.graph import GraphIndex
 
 
@@ -19,9 +20,7 @@ def activation_checked(name) -> str:
 
 def fraction_checked(value, name: str) -> float:
     """A rate in [0, 1) (0 = off), or a ValueError naming the field."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value < 1.0:
-        raise ValueError(f"{name}={value!r}: must be a number in [0, 1) (0 = off)")
-    return float(value)
+    return number_in(value, name, 0, 1, "0 = off", high_open=True)
 
 
 def dropout_checked(p) -> float:

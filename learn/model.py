@@ -9,6 +9,7 @@ import torch
 from torch import nn
 
 from learn import frames, kinematics, stiffness
+from learn.checks import integer_in, number_in
 from learn.gn import GNBlock, ProcessorBlock, activation_checked, dropout_checked, mlp
 from learn.graph import BEAM, JOINT, Block, GraphIndex
 from learn.pca import Moments, Normalizer, TermPCA
@@ -174,14 +175,6 @@ def local_geometry(geometry: torch.Tensor, block: Block) -> torch.Tensor:
 TERM_KINDS = ("geometry", "stress", "bc")
 
 
-def integer_in(value, name: str, low: int, high: int, meaning: str) -> int:
-    """value as an int when it is an integer in [low, high]; otherwise a ValueError naming `name` and the range."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or int(value) != value or \
-            not low <= value <= high:
-        raise ValueError(f"{name}={value!r}: must be an integer in [{low}, {high}] ({meaning})")
-    return int(value)
-
-
 def rollout_rotations_checked(value, name: str) -> int:
     """A rotation count for answer_unroll: an integer in [1, 64]."""
     return integer_in(value, name, 1, 64, "1 = the network alone")
@@ -218,10 +211,8 @@ def term_retention(retention: float | dict) -> dict[str, float]:
     missing = sorted(set(TERM_KINDS) - set(given))
     if unknown or missing:
         raise ValueError(f"pca_retention: keys must be {list(TERM_KINDS)} (unknown {unknown}, missing {missing})")
-    for kind, value in given.items():
-        if not isinstance(value, (int, float)) or not 0.0 < float(value) <= 1.0:
-            raise ValueError(f"pca_retention.{kind}={value!r}: must be a number in (0, 1]")
-    return {k: float(v) for k, v in given.items()}
+    return {kind: number_in(value, f"pca_retention.{kind}", 0, 1, "the share of the term's variance kept",
+                            low_open=True) for kind, value in given.items()}
 
 
 class Simulator(nn.Module):

@@ -30,6 +30,7 @@ from data_schema import atomic
 from data_schema.episode import read_episode
 from data_schema.view import write_series
 from learn import ensemble
+from learn.checks import integer_in
 from learn.features import extract
 from learn.plots import equal_axes
 from learn.rollout import Rollout, rollout_many
@@ -133,10 +134,8 @@ def predict(cfg: DictConfig) -> dict | list[dict]:
     """One episode: its result (out_dir/prediction.*). Several (a list or a directory): all rolled out in one pass
     (learn.rollout.rollout_many), each design's outputs in out_dir/<episode stem>/, and out_dir/predictions.csv and
     predictions.json with a row per design; -> the list of results."""
-    torch.set_num_threads(int(cfg.threads))
-    steps = int(cfg.steps)
-    if steps < 1:
-        raise ValueError(f"steps={steps}: must be >= 1 (the training episodes have 10)")
+    torch.set_num_threads(integer_in(cfg.threads, "threads", 1, 1024, "torch threads while rolling out and timing"))
+    steps = integer_in(cfg.steps, "steps", 1, 1000, "rollout steps; the training episodes have 10")
     episodes = episode_paths(cfg.episode)
     model, ckpt = ensemble.load(ensemble.checkpoint_paths(cfg.checkpoint))
     model.answer_with(cfg.rollout_rotations, cfg.rollout_mirror, cfg.rollout_lattice_turns)

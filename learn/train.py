@@ -15,13 +15,14 @@ from omegaconf import DictConfig, OmegaConf
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from learn import checkpoint
+from learn.checks import integer_in, number_in
 from learn.conditions import envelope
 from learn.dataset import (GraphSet, TurnedSet, augment, augment_angles, episode_paths, extend_split,
                            extra_dirs_checked, load_features, split_missing_checked, split_names)
 from learn.features import EpisodeFeatures
 from learn.gn import dropout_checked, fraction_checked
 from learn.metrics import multistep_loss, noise_placement_checked, noise_shape_checked, rollout_errors
-from learn.model import (Simulator, integer_in, passes_checked, rollout_lattice_turns_checked,
+from learn.model import (Simulator, passes_checked, rollout_lattice_turns_checked,
                          rollout_rotations_checked, term_retention)
 from learn.stiffness import beam_middle_checked
 from learn.rollout import input_floor
@@ -226,21 +227,9 @@ def extra_designs(dirs: list[Path], names: set[str], key: str) -> list[EpisodeFe
     return extra
 
 
-def number_checked(value, name: str, low: float, high: float, meaning: str, low_open: bool = False) -> float:
-    """A number in [low, high] ((low, high] with low_open), else an error naming the key and the range."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or \
-            not (low < value if low_open else low <= value) or value > high:
-        if math.isinf(high):
-            allowed = f"a number {'>' if low_open else '>='} {low:g}"
-        else:
-            allowed = f"a number in {'(' if low_open else '['}{low:g}, {high:g}]"
-        raise ValueError(f"{name}={value!r}: must be {allowed} ({meaning})")
-    return float(value)
-
-
 def weight_checked(cfg: DictConfig, name: str, meaning: str) -> float:
     """A loss weight from conf/train.yaml: a number in [0, 100], else an error naming the key."""
-    return number_checked(cfg.get(name, 0.0), name, 0, 100, f"0 = {meaning}")
+    return number_in(cfg.get(name, 0.0), name, 0, 100, f"0 = {meaning}")
 
 
 MONITORS = ("val_rollout", "val_loss")
@@ -260,17 +249,17 @@ def run_options_checked(cfg: DictConfig) -> None:
     integer_in(cfg.log_every, "log_every", 1, 10**6, "epochs between log lines")
     if cfg.monitor not in MONITORS:
         raise ValueError(f"monitor={cfg.monitor!r}: must be one of {' | '.join(MONITORS)}")
-    number_checked(cfg.get("noise_std", 0.0), "noise_std", 0, 10, "input noise in step stds; 0 = none")
+    number_in(cfg.get("noise_std", 0.0), "noise_std", 0, 10, "input noise in step stds; 0 = none")
     weight_checked(cfg, "stress_weight", "stress not fitted")
     weight_checked(cfg, "teacher_weight", "no one-step term")
-    number_checked(cfg.optim.lr, "optim.lr", 0, math.inf, "Adam's base learning rate", low_open=True)
-    number_checked(cfg.optim.lr_drop_factor, "optim.lr_drop_factor", 0, 1, "the rate's factor late; 1 = no drop",
-                   low_open=True)
-    number_checked(cfg.optim.lr_drop_at, "optim.lr_drop_at", 0, 1, "the fraction of the epochs the drop comes at")
-    number_checked(cfg.optim.get("grad_clip", 0.0), "optim.grad_clip", 0, math.inf, "the largest gradient norm; 0 = off")
+    number_in(cfg.optim.lr, "optim.lr", 0, math.inf, "Adam's base learning rate", low_open=True)
+    number_in(cfg.optim.lr_drop_factor, "optim.lr_drop_factor", 0, 1, "the rate's factor late; 1 = no drop",
+              low_open=True)
+    number_in(cfg.optim.lr_drop_at, "optim.lr_drop_at", 0, 1, "the fraction of the epochs the drop comes at")
+    number_in(cfg.optim.get("grad_clip", 0.0), "optim.grad_clip", 0, math.inf, "the largest gradient norm; 0 = off")
     if cfg.get("time_limit_min") is not None:
-        number_checked(cfg.time_limit_min, "time_limit_min", 0, math.inf, "minutes before a resumable pause",
-                       low_open=True)
+        number_in(cfg.time_limit_min, "time_limit_min", 0, math.inf, "minutes before a resumable pause",
+                  low_open=True)
 
 
 def training_loss(model: Simulator, batch: GraphSet, cfg: DictConfig, generator: torch.Generator) -> torch.Tensor:

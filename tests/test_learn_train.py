@@ -233,7 +233,8 @@ def test_evaluate_writes_the_report(trained, tmp_path):
     assert set(v["spearman"]) == {"max_dislocation_rel", "out_of_range_fraction", "unrolled_one_kind"}  # no spread:
     # one model
     assert "Validity check against max error > 10.00%" in (tmp_path / "report.md").read_text()
-    with pytest.raises(ValueError, match="flag_error_rel=1.5: allowed is a fraction of the design size in"):
+    with pytest.raises(ValueError, match=r"flag_error_rel=1.5: must be a number in \(0, 1\) \(a fraction of the "
+                                         "design size"):
         evaluate(cfg_for("evaluate", [f"checkpoint={run / 'best.pt'}", f"out_dir={tmp_path / 'x'}",
                                       "flag_error_rel=1.5"]))
     assert on_disk["rollout_backend"] == "torchscript"
@@ -290,7 +291,8 @@ def test_a_design_whose_compiled_rollout_departs_from_eager_is_flagged_and_the_o
         d for d in clean["designs"] if d["name"] == victim.name)["valid"] else 0)
     assert report["validity_measured"]["n_flagged"] == report["n_invalid"]
     assert "1 where the compiled rollout departs from eager" in (tmp_path / "out" / "report.md").read_text()
-    with pytest.raises(ValueError, match=r"compiled_departures=1.5: allowed is a fraction of the designs in \[0, 1\]"):
+    with pytest.raises(ValueError, match=r"compiled_departures=1.5: must be a number in \[0, 1\] \(a fraction of "
+                                         "the designs"):
         evaluate(cfg_for("evaluate", [*args, f"out_dir={tmp_path / 'x'}", "compiled_departures=1.5"]))
 
 
@@ -301,6 +303,24 @@ def test_evaluate_refuses_a_bad_count_before_reading_anything(tmp_path, option, 
     missing = tmp_path / "no_such_run" / "best.pt"  # refused before the checkpoint is even looked for
     with pytest.raises(ValueError, match=message):
         evaluate(cfg_for("evaluate", [f"checkpoint={missing}", f"out_dir={tmp_path / 'out'}", option]))
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("tool, option, message", [
+    ("predict", "threads=0", r"threads=0: must be an integer in \[1, 1024\]"),
+    ("predict", "steps=0", r"steps=0: must be an integer in \[1, 1000\] \(rollout steps"),
+    ("predict", "steps=2.5", r"steps=2.5: must be an integer in \[1, 1000\]"),  # int() read it as 2 before
+    ("diagnose", "threads=0", r"threads=0: must be an integer in \[1, 1024\]"),
+    ("diagnose", "threads=1.5", r"threads=1.5: must be an integer in \[1, 1024\]")])
+def test_predict_and_diagnose_refuse_a_bad_count_before_reading_anything(tmp_path, tool, option, message):
+    from learn.diagnose import diagnose
+    from learn.predict import predict
+    missing = tmp_path / "no_such_run" / "best.pt"  # refused before the checkpoint is even looked for
+    args = [f"checkpoint={missing}", f"out_dir={tmp_path / 'out'}", option]
+    run = {"predict": lambda: predict(cfg_for("predict", [*args, f"episode={tmp_path / 'none.h5'}"])),
+           "diagnose": lambda: diagnose(cfg_for("diagnose", args))}[tool]
+    with pytest.raises(ValueError, match=message):
+        run()
     assert not (tmp_path / "out").exists()
 
 

@@ -73,7 +73,7 @@ def test_reports_that_mean_different_things_or_no_bad_design_rule_are_refused():
         calibrate([report(ROWS, margin=0.0), report(ROWS, margin=0.25)])
     with pytest.raises(ValueError, match="error_rel: the reports do not say"):
         calibrate([report(ROWS, flag=0.10), report(ROWS, flag=0.05)])
-    with pytest.raises(ValueError, match="error_rel=1.5: allowed is a fraction"):
+    with pytest.raises(ValueError, match=r"error_rel=1.5: must be a number in \(0, 1\) \(a fraction of the design"):
         calibrate([report(ROWS)], error_rel=1.5)
     with pytest.raises(ValueError, match="reports: give at least one"):
         calibrate([])
