@@ -1124,7 +1124,7 @@ def test_every_key_of_a_model_config_reaches_the_model_as_given(data_dir, tmp_pa
     # session 30: model.beam_middle had never reached the model (learn.train.model_args left it out), so session 27's
     # hermite arms trained with mean middles; every key of conf/model/ must arrive, with the value the config gives
     from learn.train import model_args
-    for overrides in ([], ["model.beam_middle=hermite", "model.passes=2", "model.update=stiffness"]):
+    for overrides in ([], ["model.beam_middle=hermite", "model.passes=1", "model.update=stiffness"]):
         cfg = cfg_for("train", [f"model={model_name}", *overrides])
         args = model_args(cfg.model)
         given = OmegaConf.to_container(cfg.model)
