@@ -269,7 +269,8 @@ class Simulator(nn.Module):
         self.passes = passes_checked(args.get("passes", 1))
         if self.passes > 1 and (self.direct or self.kinematic):
             raise ValueError(f"model.passes={self.passes}: needs model.update=additive or stiffness (a corrector pass "
-                             f"adds to the state the last pass reached; got {update!r})")
+                             f"adds to the state the last pass reached; got {update!r}): set model.passes=1 with "
+                             "this update")
         if self.direct and not args.get("time_input", True):
             raise ValueError("model.update=direct needs model.time_input=true (the time is all that tells its "
                              "frames apart)")

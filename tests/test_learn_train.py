@@ -456,13 +456,15 @@ def test_every_model_config_composes_and_trains(data_dir, tmp_path, model_name):
     assert train(cfg)["core"] == model_name
 
 
-@pytest.mark.parametrize("option", ["model.update=kinematic", "loss_geometry=points", "loss_geometry=both", "rollout_gradient=stop",
+@pytest.mark.parametrize("option", ["model.update=kinematic model.passes=1", "loss_geometry=points", "loss_geometry=both", "rollout_gradient=stop",
                                     "rollout_gradient=0.5", "model.frame=fixed", "rotations_redraw=true", "lattice_turns=4",
                                     "chord_weight=1.0", "precision=bf16", "teacher_weight=1.0",
-                                    "model.update=direct", "model.update=stiffness", "model.span_input=true"])
+                                    "model.update=direct model.passes=1", "model.update=stiffness",
+                                    "model.span_input=true", "model.passes=1"])
 def test_training_options_reduce_the_loss(data_dir, tmp_path, option):
+    # an option may hold several overrides (a direct or kinematic update takes no corrector pass: passes=1 with it)
     summary = train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=16", "optim.lr=3e-3", "batch_size=1",
-                                          "rollout_horizon=3", option)))
+                                          "rollout_horizon=3", *option.split())))
     hist = checkpoint.load(tmp_path / "last.pt")["history"]
     assert hist[-1]["train_loss"] < 0.8 * hist[0]["train_loss"] and summary["epochs_run"] == 16
 
@@ -891,7 +893,8 @@ def test_diagnose_of_a_direct_model_leaves_out_the_steps_it_does_not_take(data_d
     """A direct model answers every frame from the design: its one step is defined from frame 0 only (= its first
     frame), its final error from frame 0 only (= its rollout's); the rest are None in the JSON and '-' in the table."""
     from learn.diagnose import diagnose
-    train(cfg_for("train", tiny(data_dir, tmp_path / "run", "epochs=2", "model.update=direct")))
+    train(cfg_for("train", tiny(data_dir, tmp_path / "run", "epochs=2", "model.update=direct",
+                                "model.passes=1")))
     report = diagnose(cfg_for("diagnose", [f"checkpoint={tmp_path / 'run' / 'best.pt'}", f"out_dir={tmp_path}",
                                            "splits=[train]"]))
     m = json.loads((tmp_path / "diagnose.json").read_text())["splits"]["train"]
