@@ -243,8 +243,9 @@ class Simulator(nn.Module):
           them, and the additive dG is added on top; with frame local every beam's stiffness and natural increment
           and every joint's anchoring and own motion are read in the block's own frame, a law of what the block
           sees there),
-          passes (int in [1, 4], default 1: network passes per step, each with its own core; a pass after the
-          first, a corrector, reads the state the pass before reached and adds its update, additive or stiffness),
+          passes (int in [1, 4], default 1, as checkpoints before session 49 were written; conf/model's default 2:
+          network passes per step, each with its own core; a pass after the first, a corrector, reads the state the
+          pass before reached and adds its update, additive or stiffness),
           span_input (bool, default false: every beam also reads beam_spans, log of its design's flat span along it
           over the span across it: which way an all-one-kind grid rolls),
           stress_input (bool, default true: the stress terms are network inputs; false:
