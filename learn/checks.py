@@ -1,6 +1,7 @@
 """Configuration values checked against their allowed ranges: an integer or a number in [low, high] (either end
 open on request), else a ValueError naming the key, the range and what the value means. Every count, rate and weight
-of learn.train, learn.evaluate, learn.predict and learn.diagnose is read through these two."""
+of learn.train, learn.evaluate, learn.predict, learn.diagnose and the model's options (learn.model, learn.gn) is read
+through these two."""
 from __future__ import annotations
 
 import math

@@ -17,9 +17,9 @@ from omegaconf import DictConfig, OmegaConf
 
 from data_schema import atomic
 from learn import ensemble
+from learn.checks import integer_in, number_in
 from learn.dataset import design_paths, episode_paths, load_features
 from learn.features import EpisodeFeatures, rebuild_all_points
-from learn.checks import integer_in, number_in
 from learn.model import Simulator
 from learn.roll import ONE_KIND, ROLLED, roll
 from learn.aot import backend_checked
