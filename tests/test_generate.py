@@ -53,6 +53,25 @@ def test_invalid_config_is_refused_before_any_solve(tmp_path, override, field):
     assert not list((tmp_path / "ds").glob("*.h5")) and not manifest(tmp_path / "ds")
 
 
+@pytest.mark.parametrize("override, message", [
+    ("n=2.5", "n = 2.5: must be an integer >= 1 (episodes)"),  # int() read it as 2 before
+    ("start=-1", "start = -1: must be an integer >= 0 (first episode index)"),  # made episode_-0001.h5
+    ("seed=-3", "seed = -3: must be an integer >= 0 (design seed)"),  # numpy's SeedSequence error, per episode
+    ("jobs=two", "jobs = 'two': must be an integer >= 1 (episodes solved at once)"),
+    ("np=true", "np = True: must be an integer >= 1 (MPI ranks per episode)"),
+    ("shard=0.5", "shard = 0.5: must be an integer >= 0 (this process's share)")])
+def test_a_count_that_is_not_an_integer_in_range_is_refused_by_name(override, message):
+    from hydra import compose, initialize_config_dir
+
+    from fea_factory.generate import GenerateConfigError, check_config
+
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose(config_name="generate", overrides=[override])
+    with pytest.raises(GenerateConfigError) as err:
+        check_config(cfg)
+    assert str(err.value) == message
+
+
 def test_kill_mid_episode_then_resume_completes_the_set(tmp_path):
     from data_schema.validate import validate_episode
 
