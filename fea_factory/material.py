@@ -80,13 +80,13 @@ def fit_marlow(strain, nominal_stress, poisson: float, order: int = 3) -> Reduce
     """Fit the smooth Marlow-like deviatoric energy to a uniaxial nominal stress-strain table."""
     eps = np.asarray(strain, dtype=float)
     T = np.asarray(nominal_stress, dtype=float)
+    if isinstance(order, bool) or not isinstance(order, (int, np.integer)) or not 1 <= order <= 6:
+        raise MaterialError(f"material.order = {order!r}: must be an integer in [1, 6] (terms of the polynomial)")
     if eps.shape != T.shape or eps.ndim != 1 or len(eps) < order + 1:
         raise MaterialError(f"material.table: strain and stress need equal lengths >= {order + 1}; "
                             f"got {eps.shape} and {T.shape}")
     if np.any(eps <= -1.0) or not np.all(np.isfinite(T)):
         raise MaterialError("material.table: strains must be > -1 and stresses finite")
-    if not 1 <= order <= 6:
-        raise MaterialError(f"material.order = {order}: must lie in [1, 6]")
     keep = np.abs(eps) > 1e-12  # lam = 1 carries no information (0/0)
     lam, T = 1.0 + eps[keep], T[keep]
     x = lam**2 + 2.0 / lam - 3.0
@@ -109,7 +109,7 @@ def make_material(cfg) -> ReducedPolynomial:
     poisson = float(cfg["poisson"])
     if law == "marlow":
         table = cfg["table"]
-        return fit_marlow(table["strain"], table["nominal_stress"], poisson, int(cfg.get("order", 3)))
+        return fit_marlow(table["strain"], table["nominal_stress"], poisson, cfg.get("order", 3))
     if law == "neo_hookean":
         mu = float(cfg["mu"])
         if mu <= 0:

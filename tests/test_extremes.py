@@ -2,10 +2,14 @@
 SolveFailure naming its reason; cases inside the documented safe ranges converge."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 pytest.importorskip("dolfinx")
 from fea_factory.extremes import CASES, NOMINAL_SIGMA, compose, run_case  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def test_nominal_sigma_is_the_composed_material_sigma():
@@ -43,3 +47,15 @@ def test_designs_and_settings_outside_the_safe_ranges_are_refused_with_the_field
         bulk_modulus(1.0, 0.49995)
     with pytest.raises(ValueError, match=r"material.residual_stress.sigma = 0.25 MPa: must lie in \[0, 0.1974\]"):
         solve_design(bench_design(), compose(["material.residual_stress.sigma=0.25"]), MPI.COMM_WORLD)
+
+
+@pytest.mark.parametrize("order", [2.5, 0, 7, True, "3"])
+def test_a_marlow_order_that_is_not_an_integer_in_range_is_refused_by_name(order):
+    import yaml
+
+    from fea_factory.material import MaterialError, make_material
+
+    cfg = yaml.safe_load((ROOT / "conf/material/pla_80c.yaml").read_text())
+    make_material(cfg)  # the conf's own order (3) fits
+    with pytest.raises(MaterialError, match=rf"material.order = {order!r}: must be an integer in \[1, 6\]"):
+        make_material({**cfg, "order": order})  # 2.5 was fitted as 2 before, '3' raised a TypeError
