@@ -46,12 +46,11 @@ def episode_path(out: Path, i: int) -> Path:
     return out / f"episode_{i:05d}.h5"
 
 
-def integer_at_least(cfg: DictConfig, key: str, lo: int, meaning: str) -> int:
-    """cfg[key] as an int >= lo; a float (n=2.5 is not read as 2), a bool or a word is refused by name."""
+def check_integer_at_least(cfg: DictConfig, key: str, lo: int, meaning: str) -> None:
+    """cfg[key] must be an int >= lo; a float (n=2.5 is not read as 2), a bool or a word is refused by name."""
     v = cfg[key]
     if isinstance(v, bool) or not isinstance(v, int) or v < lo:
         raise GenerateConfigError(f"{key} = {v!r}: must be an integer >= {lo} ({meaning})")
-    return int(v)
 
 
 def check_config(cfg: DictConfig) -> None:
@@ -59,7 +58,7 @@ def check_config(cfg: DictConfig) -> None:
     for key, lo, meaning in (("n", 1, "episodes"), ("start", 0, "first episode index"), ("seed", 0, "design seed"),
                              ("jobs", 1, "episodes solved at once"), ("np", 1, "MPI ranks per episode"),
                              ("n_shards", 1, "processes sharing the episodes"), ("shard", 0, "this process's share")):
-        integer_at_least(cfg, key, lo, meaning)
+        check_integer_at_least(cfg, key, lo, meaning)
     if not cfg.shard < cfg.n_shards:
         raise GenerateConfigError(f"shard = {cfg.shard}: must lie in [0, n_shards - 1 = {int(cfg.n_shards) - 1}]")
     # solver.tolerance: fail here if no measured setting meets it (each episode's solve picks again, with np ranks)
