@@ -77,6 +77,9 @@ def main() -> None:
     p.add_argument("--rounds", type=int, default=3, help="timing rounds, the two ways alternately")
     p.add_argument("--out", default="reports/stacked_pair")
     a = p.parse_args()
+    for name in ("designs", "repeats", "rounds"):
+        if getattr(a, name) < 1:
+            raise SystemExit(f"--{name} {getattr(a, name)}: must be an integer >= 1")
     torch.set_num_threads(1)
     model, ckpt = ensemble.load(a.checkpoint.split(","))
     members = [m.eval() for m in ensemble.members_of(model)]
