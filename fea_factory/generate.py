@@ -25,6 +25,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
+from fea_factory.checks import integer_in
 from fea_factory.design import Design
 from fea_factory.material import make_material
 from fea_factory.mesh import MeshPreset
@@ -46,19 +47,12 @@ def episode_path(out: Path, i: int) -> Path:
     return out / f"episode_{i:05d}.h5"
 
 
-def check_integer_at_least(cfg: DictConfig, key: str, lo: int, meaning: str) -> None:
-    """cfg[key] must be an int >= lo; a float (n=2.5 is not read as 2), a bool or a word is refused by name."""
-    v = cfg[key]
-    if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-        raise GenerateConfigError(f"{key} = {v!r}: must be an integer >= {lo} ({meaning})")
-
-
 def check_config(cfg: DictConfig) -> None:
     """Build every physics object once, so that a bad value fails here and not after hours of solving."""
     for key, lo, meaning in (("n", 1, "episodes"), ("start", 0, "first episode index"), ("seed", 0, "design seed"),
                              ("jobs", 1, "episodes solved at once"), ("np", 1, "MPI ranks per episode"),
                              ("n_shards", 1, "processes sharing the episodes"), ("shard", 0, "this process's share")):
-        check_integer_at_least(cfg, key, lo, meaning)
+        integer_in(cfg[key], key, GenerateConfigError, lo, meaning=meaning)  # n=2.5 is refused, not run as 2
     if not cfg.shard < cfg.n_shards:
         raise GenerateConfigError(f"shard = {cfg.shard}: must lie in [0, n_shards - 1 = {int(cfg.n_shards) - 1}]")
     # solver.tolerance: fail here if no measured setting meets it (each episode's solve picks again, with np ranks)

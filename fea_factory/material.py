@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fea_factory.checks import integer_in
 
 POISSON_MAX = 0.4999  # tests/test_solver.py (locking) and fea_factory.extremes (nu_0.4999)
 
@@ -80,8 +81,7 @@ def fit_marlow(strain, nominal_stress, poisson: float, order: int = 3) -> Reduce
     """Fit the smooth Marlow-like deviatoric energy to a uniaxial nominal stress-strain table."""
     eps = np.asarray(strain, dtype=float)
     T = np.asarray(nominal_stress, dtype=float)
-    if isinstance(order, bool) or not isinstance(order, (int, np.integer)) or not 1 <= order <= 6:
-        raise MaterialError(f"material.order = {order!r}: must be an integer in [1, 6] (terms of the polynomial)")
+    order = integer_in(order, "material.order", MaterialError, 1, 6, "terms of the polynomial")
     if eps.shape != T.shape or eps.ndim != 1 or len(eps) < order + 1:
         raise MaterialError(f"material.table: strain and stress need equal lengths >= {order + 1}; "
                             f"got {eps.shape} and {T.shape}")

@@ -22,6 +22,7 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from fea_factory.checks import integer_in
 from fea_factory.design import BEAM_KINDS, Design, DesignError, DesignLimits, lattice_design, validate
 
 SAMPLER_FORMAT = "morphsim.sampler/1"
@@ -120,17 +121,14 @@ def _get(m: Mapping, key: str, where: str) -> Any:
 
 
 def _count(m: Mapping, key: str, where: str, lo: int = 2) -> int:
-    v = _get(m, key, where)
-    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
-        raise SamplerConfigError(f"{where}.{key} = {v!r}; must be an integer >= {lo}")
-    return int(v)
+    return integer_in(_get(m, key, where), f"{where}.{key}", SamplerConfigError, lo)
 
 
 def _number(m: Mapping, key: str, where: str, lo: float, hi: float, hi_open: bool = False) -> float:
     v = _get(m, key, where)
     ok = isinstance(v, (int, float)) and not isinstance(v, bool) and lo <= v and (v < hi if hi_open else v <= hi)
     if not ok:
-        raise SamplerConfigError(f"{where}.{key} = {v!r}; must lie in [{lo}, {hi}{')' if hi_open else ']'}")
+        raise SamplerConfigError(f"{where}.{key} = {v!r}: must lie in [{lo}, {hi}{')' if hi_open else ']'}")
     return float(v)
 
 
@@ -138,7 +136,7 @@ def _range(m: Mapping, key: str, where: str, lo: float = -np.inf, hi: float = np
            lo_open: bool = False, hi_open: bool = False) -> tuple[float, float]:
     v = _get(m, key, where)
     allowed = f"{'(' if lo_open else '['}{lo}, {hi}{')' if hi_open else ']'}"
-    msg = f"{where}.{key} = {v!r}; must be [low, high] with low <= high, both in {allowed}"
+    msg = f"{where}.{key} = {v!r}: must be [low, high] with low <= high, both in {allowed}"
     if not isinstance(v, (list, tuple)) or len(v) != 2:
         raise SamplerConfigError(msg)
     if not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
@@ -166,7 +164,7 @@ def _ratios(m: Mapping, key: str, names: tuple[str, ...], where: str) -> dict[st
 def _choice(m: Mapping, key: str, names: tuple[str, ...], where: str) -> str:
     v = _get(m, key, where)
     if v not in names:
-        raise SamplerConfigError(f"{where}.{key} = {v!r}; must be one of {list(names)}")
+        raise SamplerConfigError(f"{where}.{key} = {v!r}: must be one of {list(names)}")
     return str(v)
 
 

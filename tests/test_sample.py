@@ -208,11 +208,11 @@ def test_nx4_ny2(cfg):
 
 # ------------------------------------------------------------------------------------------ bad conf
 @pytest.mark.parametrize("change, message", [
-    ({"nx": 1}, r"grid\.nx = 1; must be an integer >= 2"),
-    ({"ny": 2.5}, r"grid\.ny = 2\.5; must be an integer >= 2"),
-    ({"spacing_x": [-10.0, 50.0]}, r"grid\.spacing_x = \[-10\.0, 50\.0\]; must be \[low, high\]"),
+    ({"nx": 1}, r"grid\.nx = 1: must be an integer >= 2"),
+    ({"ny": 2.5}, r"grid\.ny = 2\.5: must be an integer >= 2"),
+    ({"spacing_x": [-10.0, 50.0]}, r"grid\.spacing_x = \[-10\.0, 50\.0\]: must be \[low, high\]"),
     ({"spacing_y": [90.0, 60.0]}, r"grid\.spacing_y .* low <= high"),
-    ({"jitter": 0.5}, r"grid\.jitter = 0\.5; must lie in \[0\.0, 0\.5\)"),
+    ({"jitter": 0.5}, r"grid\.jitter = 0\.5: must lie in \[0\.0, 0\.5\)"),
     ({"jitter": -0.1}, r"grid\.jitter"),
     ({"family": {"random": 0, "regular": 0}}, r"grid\.family: ratios .* must sum to > 0"),
     ({"family": {"random": 1, "fancy": 1}}, r"grid\.family: unknown field\(s\) \['fancy'\]"),
@@ -222,8 +222,8 @@ def test_nx4_ny2(cfg):
     ({"regular.taper": [0.5, 1.5]}, r"grid\.regular\.taper .* \(0\.0, 1\.0\]"),
     ({"regular.shear_deg": [10, 50]}, r"grid\.regular\.shear_deg .* \[0\.0, 45\.0\)"),
     ({"clustered.fraction": [0.0, 0.5]}, r"grid\.clustered\.fraction"),
-    ({"fixed_joint": "edge"}, r"grid\.fixed_joint = 'edge'; must be one of \['center', 'corner', 'random'\]"),
-    ({"max_attempts": 0}, r"grid\.max_attempts = 0; must be an integer >= 1"),
+    ({"fixed_joint": "edge"}, r"grid\.fixed_joint = 'edge': must be one of \['center', 'corner', 'random'\]"),
+    ({"max_attempts": 0}, r"grid\.max_attempts = 0: must be an integer >= 1"),
     ({"jiter": 0.1}, r"grid: unknown field\(s\) \['jiter'\]"),
 ])
 def test_bad_conf_names_the_field(cfg, change, message):
