@@ -71,7 +71,7 @@ finetune:  ## carry CKPT on to every training design of data/ds_default + data/d
 	$(PY) -m learn.train +experiment=finetune "init_from=$(CKPT)" run_dir=$(RUN) $(ARGS)
 
 REF ?= reports/reference
-reference-evaluate:  ## CKPT (or CKPT='[a.pt,b.pt]', an ensemble) on the 102 held-out designs: 52 pinned of data/ds_default + data/ds_heldout -> REF/102 (REF=reports/reference; timed as deployed, BACKEND=aot since session 38)
+reference-evaluate:  ## CKPT (or CKPT='[a.pt,b.pt]', an ensemble) on the 102 held-out designs: 52 pinned of data/ds_default + data/ds_heldout -> REF/102 (REF=reports/reference; timed as deployed, BACKEND=aot since session 38; BACKEND=aot_tuned: kernels picked by timing)
 	$(PY) -m learn.evaluate "checkpoint=$(or $(CKPT),runs/reference/best.pt)" data_dir=data/ds_default split=val+test plots=false threads=1 rollout_backend=$(or $(BACKEND),aot) out_dir=$(REF)/52 $(ARGS)
 	$(PY) -m learn.evaluate "checkpoint=$(or $(CKPT),runs/reference/best.pt)" data_dir=data/ds_heldout split=all timing_repeats=1 plots=false threads=1 rollout_backend=$(or $(BACKEND),aot) out_dir=$(REF)/fresh $(ARGS)
 	$(PY) -m learn.combine 'reports=[$(REF)/52,$(REF)/fresh]' out_dir=$(REF)/102
@@ -101,7 +101,7 @@ stability:  ## stability matrix at the extremes (reports/stability/; ~9 min)
 bench-fea:  ## FEA benchmark table + plot (reports/bench_fea/)
 	$(PY) scripts/bench_fea.py --out reports/bench_fea
 
-bench-rollout:  ## learned rollout ms vs symmetry copies and designs per call, 1 thread (CKPT=runs/train/best.pt; BACKEND=torchscript,aot; SETTINGS=1:false,..; reports/bench_rollout/; idle machine)
+bench-rollout:  ## learned rollout ms vs symmetry copies and designs per call, 1 thread (CKPT=runs/train/best.pt; BACKEND=torchscript,aot,aot_tuned; SETTINGS=1:false,..; reports/bench_rollout/; idle machine)
 	$(PY) scripts/bench_rollout.py --checkpoint $(or $(CKPT),runs/train/best.pt) --batch $(or $(BATCH),8,32,128) \
 		--backend $(or $(BACKEND),torchscript) $(if $(SETTINGS),--settings $(SETTINGS)) --out $(or $(BENCH),reports/bench_rollout)
 

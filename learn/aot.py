@@ -10,6 +10,12 @@ on disk under a key of the model's weights, statistics and args, the shapes, the
 is built for the machine it runs on), so a design
 session or the next evaluation loads it in milliseconds; removing the cache directory only costs recompiling.
 Kinematic models are not compiled this way (their placement order is a Python tree).
+
+Backend "aot_tuned" compiles the same step with inductor's max_autotune: every matrix product is timed on this
+machine against inductor's own C++ micro-kernel for its shape and the faster kept. A step's products are small
+(9-24 rows by 4-256 columns for one 3 x 3 design), where a library call's dispatch (~5 us) outweighs the arithmetic,
+so the micro-kernels win most of them (0.4-1.5 us against 5-6 us). Compiling takes ~3-5x longer (the timings), once per
+model and shapes like every package, kept apart from the untuned ones.
 """
 from __future__ import annotations
 
@@ -28,14 +34,16 @@ from learn.graph import GraphIndex
 from learn.model import Simulator, Static
 from learn.stiffness import Layout
 
-BACKENDS = ("torchscript", "aot")  # rollout_backend: how learn.rollout.compile_rollout compiles a rollout
+BACKENDS = ("torchscript", "aot", "aot_tuned")  # rollout_backend: how learn.rollout.compile_rollout compiles a rollout
+AOT_BACKENDS = {"aot": {}, "aot_tuned": {"max_autotune": True, "autotune_num_choices_displayed": 0}}  # inductor options
 
 
 def backend_checked(value) -> str:
     """rollout_backend: one of BACKENDS."""
     if value not in BACKENDS:
         raise ValueError(f"rollout_backend={value!r}: must be one of {' | '.join(BACKENDS)} (torchscript: a traced "
-                         "rollout; aot: every step an AOTInductor-compiled C++ package, learn/aot.py)")
+                         "rollout; aot: every step an AOTInductor-compiled C++ package, learn/aot.py; aot_tuned: "
+                         "the same with its matrix products' kernels chosen by timing on this machine)")
     return value
 
 
@@ -109,7 +117,11 @@ class AotSteps:
     called like model.step. A model's fingerprint is taken at its first use here: change its weights after that and
     make a new AotSteps (a CompiledRollout makes its own)."""
 
-    def __init__(self, cache: str | Path | None = None, log: Callable[[str], None] | None = print):
+    def __init__(self, cache: str | Path | None = None, log: Callable[[str], None] | None = print,
+                 backend: str = "aot"):
+        if backend not in AOT_BACKENDS:
+            raise ValueError(f"AotSteps backend={backend!r}: must be one of {' | '.join(AOT_BACKENDS)}")
+        self.backend, self.options = backend, AOT_BACKENDS[backend]
         self.cache = Path(cache) if cache else default_cache()
         self.log = log or (lambda _: None)
         self.runners: dict = {}
@@ -121,8 +133,6 @@ class AotSteps:
         if model.kinematic:
             raise ValueError("rollout_backend=aot: a kinematic model (model.update=kinematic) places beams along a "
                              "Python tree the export cannot follow; use rollout_backend=torchscript")
-        if model not in self.fingerprints:
-            self.fingerprints[model] = fingerprint(model)
 
         def step(joint_state, beam_state, static: Static, t):
             g = static.index
@@ -140,15 +150,23 @@ class AotSteps:
                 inputs.append(static.beam_spans())
             # contiguous, as when compiled: a package reads its inputs at the strides it was compiled with
             inputs = [x.contiguous() for x in inputs]
-            shapes = [(tuple(x.shape), str(x.dtype)) for x in inputs]
-            key = (self.fingerprints[model], self.machine, union, g.n_graphs, sizes, bool(model.span_input),
-                   tuple(shapes))
+            key = self.key(model, inputs, union, g.n_graphs, sizes)
             if key not in self.runners:
                 self.runners[key] = self._runner(model, key, inputs, union, g.n_graphs, sizes)
             out = self.runners[key](*inputs)
             return out[0], out[1]
 
         return step
+
+    def key(self, model: Simulator, inputs: list[torch.Tensor], union: bool, n_graphs: int | None,
+            sizes: tuple[int, int] | None) -> tuple:
+        """A package's key: the model's fingerprint, the machine, the graph counts, every input's shape and dtype,
+        and the backend when tuned (aot's keys are those written before aot_tuned existed)."""
+        if model not in self.fingerprints:
+            self.fingerprints[model] = fingerprint(model)
+        shapes = tuple((tuple(x.shape), str(x.dtype)) for x in inputs)
+        key = (self.fingerprints[model], self.machine, union, n_graphs, sizes, bool(model.span_input), shapes)
+        return key if self.backend == "aot" else key + (self.backend,)
 
     def package_path(self, key) -> Path:
         """Where the package of a key (model fingerprint, machine, graph counts, input shapes) is kept."""
@@ -158,8 +176,8 @@ class AotSteps:
         path = self.package_path(key)
         if not path.exists():
             self.cache.mkdir(parents=True, exist_ok=True)
-            self.log(f"aot: compiling the step for shapes {[s for s, _ in key[-1][:2]]} into {path} "
-                     "(once per model and graph size, ~1 min)")
+            self.log(f"{self.backend}: compiling the step for shapes {[tuple(x.shape) for x in inputs[:2]]} "
+                     f"into {path} (once per model and graph size, ~{'1' if self.backend == 'aot' else '3-5'} min)")
             module = _Step(model.eval(), union, n_graphs, sizes, bool(model.span_input)).eval()
             example = tuple(x.detach().clone() for x in inputs)
             with torch.inference_mode(False), torch.no_grad():
@@ -167,7 +185,8 @@ class AotSteps:
                 fd, tmp = tempfile.mkstemp(suffix=".pt2", dir=self.cache)
                 os.close(fd)
                 try:
-                    torch._inductor.aoti_compile_and_package(exported, package_path=tmp)
+                    torch._inductor.aoti_compile_and_package(exported, package_path=tmp,
+                                                             inductor_configs=dict(self.options))
                     os.chmod(tmp, 0o644)  # mkstemp's 0600 would keep a shared cache from other users
                     os.replace(tmp, path)  # atomic: a package is whole or absent
                 finally:

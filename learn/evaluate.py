@@ -22,7 +22,7 @@ from learn.dataset import design_paths, episode_paths, load_features
 from learn.features import EpisodeFeatures, rebuild_all_points
 from learn.model import Simulator
 from learn.roll import ONE_KIND, ROLLED, roll
-from learn.aot import backend_checked
+from learn.aot import AOT_BACKENDS, backend_checked
 from learn.rollout import (answer_unroll, compile_rollout, graph_inputs, input_floor, plain_inputs, reference,
                            rollout)
 from learn.validity import check, thresholds
@@ -235,9 +235,9 @@ def mark_departures(designs: list[dict], departed: list[dict], allowed: float, b
     beside the eager errors; more than `allowed` (a fraction of the designs) departing is a compile fault, raised."""
     if len(departed) > allowed * len(designs):
         names = ", ".join(f"{designs[d['index']]['name']} ({d['gap_mm']:.3g} mm)" for d in departed[:5])
-        hint = ("; rollout_backend=aot sums in another order than eager, so at a bifurcation rounding can grow: time "
-                "it with rollout_backend=torchscript (make reference-evaluate BACKEND=torchscript) and compare"
-                if backend == "aot" else "")
+        hint = (f"; rollout_backend={backend} sums in another order than eager, so at a bifurcation rounding can "
+                "grow: time it with rollout_backend=torchscript (make reference-evaluate BACKEND=torchscript) and compare"
+                if backend in AOT_BACKENDS else "")
         raise RuntimeError(f"compiled rollout differs from eager by more than {COMPILED_GAP_REL:g} of the design size "
                            f"on {len(departed)} of {len(designs)} designs: {names}{', ...' if len(departed) > 5 else ''}"
                            f"; compiled_departures={allowed:g} allows {int(allowed * len(designs))}{hint}")

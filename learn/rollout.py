@@ -8,7 +8,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
-from learn.aot import AotSteps, backend_checked
+from learn.aot import AOT_BACKENDS, AotSteps, backend_checked
 from learn.ensemble import Ensemble, members_of, stack_mean
 from learn.dataset import GraphSet
 from learn.features import EpisodeFeatures, beams_along_i, extract, rebuild_all_points, welded
@@ -183,7 +183,8 @@ def _trace(model: Simulator, inputs: tuple[torch.Tensor, ...], n_graphs: int | N
 class CompiledRollout:
     """Compiled rollouts, called like _Unroll with graph_inputs(f): the same numbers as the eager rollout, as many
     steps as the inputs' frame times give. backend "aot": every step of every model (an ensemble's members each) is
-    an AOTInductor package (learn/aot.py: compiled once per model and input shapes, kept in `cache`), the rest of the
+    an AOTInductor package (learn/aot.py: compiled once per model and input shapes, kept in `cache`; "aot_tuned" the
+    same with each matrix product's kernel picked by timing), the rest of the
     rollout (the copies an answer averages, stacking the frames, rebuilding the points) plain PyTorch: the fastest
     for one design (session 38: x0.67 of the trace). backend "torchscript" (the default): TorchScript rollouts
     (traced, frozen), a fraction of the Python overhead per step, as many steps as the traced example has frames - 1.
@@ -197,7 +198,7 @@ class CompiledRollout:
                  cache: str | None = None):
         self.model = model
         self.backend = backend_checked(backend)
-        self.stepper = AotSteps(cache) if self.backend == "aot" else None
+        self.stepper = AotSteps(cache, backend=self.backend) if self.backend in AOT_BACKENDS else None
         self.traces: dict = {}
         with torch.inference_mode():
             self(*graph_inputs(example))
@@ -231,8 +232,8 @@ class CompiledRollout:
 
 def compile_rollout(model: Simulator, example: EpisodeFeatures, backend: str = "torchscript",
                     cache: str | None = None) -> CompiledRollout:
-    """A compiled rollout, compiled on `example` (see CompiledRollout; backend torchscript | aot, cache: where aot
-    keeps its packages, learn.aot.default_cache when None)."""
+    """A compiled rollout, compiled on `example` (see CompiledRollout; backend torchscript | aot | aot_tuned, cache:
+    where aot keeps its packages, learn.aot.default_cache when None)."""
     return CompiledRollout(model, example, backend, cache)
 
 

@@ -59,8 +59,9 @@ def main() -> None:
     p.add_argument("--batch", default="", help="designs per call beside the one-design latency, comma-separated "
                    "(e.g. 8,32,128)")
     p.add_argument("--backend", default="torchscript",
-                   help="compile_rollout backends timed, comma-separated: torchscript | aot (aot: ~1 min to compile "
-                        "per model, setting and batch size the first time, then from its cache)")
+                   help="compile_rollout backends timed, comma-separated: torchscript | aot | aot_tuned (aot: ~1 min "
+                        "to compile per model, setting and batch size the first time, aot_tuned 3-5 min, then from "
+                        "the cache)")
     p.add_argument("--aot-cache", help="where aot keeps its packages (default: learn.aot.default_cache)")
     p.add_argument("--out", default="reports/bench_rollout")
     a = p.parse_args()

@@ -94,7 +94,8 @@ def test_a_package_is_keyed_by_the_weights_and_bad_backends_are_refused(features
     with torch.no_grad():
         next(b.core.parameters())[0, 0] += 1e-6
     assert fingerprint(a) != fingerprint(b)
-    with pytest.raises(ValueError, match=re.escape("rollout_backend='tensorrt': must be one of torchscript | aot")):
+    with pytest.raises(ValueError, match=re.escape("rollout_backend='tensorrt': must be one of torchscript | aot | "
+                                                   "aot_tuned")):
         backend_checked("tensorrt")
     steps = AotSteps(log=None)
     assert steps.machine == machine_key() and "|" in steps.machine  # the CPU its code is built for (-march=native)
@@ -103,3 +104,29 @@ def test_a_package_is_keyed_by_the_weights_and_bad_backends_are_refused(features
     kinematic = small_model(features, update="kinematic", frame="global")
     with pytest.raises(ValueError, match="rollout_backend=aot: a kinematic model"):
         AotSteps(log=None).step_of(kinematic)
+    with pytest.raises(ValueError, match=re.escape("AotSteps backend='torchscript': must be one of aot | aot_tuned")):
+        AotSteps(log=None, backend="torchscript")
+
+
+def test_a_tuned_package_is_kept_apart_from_an_untuned_one(features):
+    """aot_tuned's packages hold other machine code (kernels picked by timing) than aot's for the same model and
+    shapes: their keys, hence their files, differ, and aot's keys are those written before aot_tuned existed."""
+    model = small_model(features)
+    inputs = [x.contiguous() for x in graph_inputs(features[0])]
+    aot, tuned = (AotSteps(log=None, backend=b) for b in ("aot", "aot_tuned"))
+    key = aot.key(model, inputs, False, 1, None)
+    assert key == (fingerprint(model), machine_key(), False, 1, None, False,
+                   tuple((tuple(x.shape), str(x.dtype)) for x in inputs))
+    assert tuned.key(model, inputs, False, 1, None) == key + ("aot_tuned",)
+    assert aot.package_path(key) != tuned.package_path(key + ("aot_tuned",))
+
+
+@pytest.mark.slow
+def test_tuned_aot_steps_give_the_eager_rollout(features, tmp_path):
+    """max_autotune's micro-kernels sum in their own order: the tuned rollout stays as close to the exact one as
+    the untuned one must (~2 min: each kernel candidate is compiled and timed)."""
+    model = small_model(features)
+    compiled = compile_rollout(model, features[0], "aot_tuned", tmp_path)
+    with torch.inference_mode():
+        assert_as_exact_as_eager(compiled(*graph_inputs(features[1]))[2], model, features[1])
+    assert compiled.stepper.compiled == 1 and compiled.stepper.backend == "aot_tuned"
