@@ -14,8 +14,9 @@ Kinematic models are not compiled this way (their placement order is a Python tr
 Backend "aot_tuned" compiles the same step with inductor's max_autotune: every matrix product is timed on this
 machine against inductor's own C++ micro-kernel for its shape and the faster kept. A step's products are small
 (9-24 rows by 4-256 columns for one 3 x 3 design), where a library call's dispatch (~5 us) outweighs the arithmetic,
-so the micro-kernels win most of them (0.4-1.5 us against 5-6 us). Compiling takes ~3-5x longer (the timings), once per
-model and shapes like every package, kept apart from the untuned ones.
+so the micro-kernels win most of them (0.4-1.5 us against 5-6 us); a two-pass pair's rollout took x0.87-0.96 of aot's
+on an idle 2-core EPYC (session 51, scripts/bench_rollout.py). Compiling takes ~3-5x longer (each candidate is compiled
+and timed), once per model and shapes like every package, kept apart from the untuned ones.
 """
 from __future__ import annotations
 
