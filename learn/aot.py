@@ -35,8 +35,8 @@ from learn.graph import GraphIndex
 from learn.model import Simulator, Static
 from learn.stiffness import Layout
 
-BACKENDS = ("torchscript", "aot", "aot_tuned")  # rollout_backend: how learn.rollout.compile_rollout compiles a rollout
 AOT_BACKENDS = {"aot": {}, "aot_tuned": {"max_autotune": True, "autotune_num_choices_displayed": 0}}  # inductor options
+BACKENDS = ("torchscript", *AOT_BACKENDS)  # rollout_backend: how learn.rollout.compile_rollout compiles a rollout
 
 
 def backend_checked(value) -> str:
@@ -132,8 +132,8 @@ class AotSteps:
 
     def step_of(self, model: Simulator) -> Callable:
         if model.kinematic:
-            raise ValueError("rollout_backend=aot: a kinematic model (model.update=kinematic) places beams along a "
-                             "Python tree the export cannot follow; use rollout_backend=torchscript")
+            raise ValueError(f"rollout_backend={self.backend}: a kinematic model (model.update=kinematic) places beams "
+                             "along a Python tree the export cannot follow; use rollout_backend=torchscript")
 
         def step(joint_state, beam_state, static: Static, t):
             g = static.index
