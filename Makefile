@@ -71,9 +71,9 @@ finetune:  ## carry CKPT on to every training design of data/ds_default + data/d
 	$(PY) -m learn.train +experiment=finetune "init_from=$(CKPT)" run_dir=$(RUN) $(ARGS)
 
 REF ?= reports/reference
-reference-evaluate:  ## CKPT (or CKPT='[a.pt,b.pt]', an ensemble) on the 102 held-out designs: 52 pinned of data/ds_default + data/ds_heldout -> REF/102 (REF=reports/reference; timed as deployed, BACKEND=aot since session 38; BACKEND=aot_tuned: kernels picked by timing)
-	$(PY) -m learn.evaluate "checkpoint=$(or $(CKPT),runs/reference/best.pt)" data_dir=data/ds_default split=val+test plots=false threads=1 rollout_backend=$(or $(BACKEND),aot) out_dir=$(REF)/52 $(ARGS)
-	$(PY) -m learn.evaluate "checkpoint=$(or $(CKPT),runs/reference/best.pt)" data_dir=data/ds_heldout split=all timing_repeats=1 plots=false threads=1 rollout_backend=$(or $(BACKEND),aot) out_dir=$(REF)/fresh $(ARGS)
+reference-evaluate:  ## CKPT (or CKPT='[a.pt,b.pt]', an ensemble) on the 102 held-out designs: 52 pinned of data/ds_default + data/ds_heldout -> REF/102 (REF=reports/reference; timed as deployed: BACKEND=aot_tuned since session 52, kernels picked by timing, 3-5 min more to compile a new model; BACKEND=aot as in sessions 38-51)
+	$(PY) -m learn.evaluate "checkpoint=$(or $(CKPT),runs/reference/best.pt)" data_dir=data/ds_default split=val+test plots=false threads=1 rollout_backend=$(or $(BACKEND),aot_tuned) out_dir=$(REF)/52 $(ARGS)
+	$(PY) -m learn.evaluate "checkpoint=$(or $(CKPT),runs/reference/best.pt)" data_dir=data/ds_heldout split=all timing_repeats=1 plots=false threads=1 rollout_backend=$(or $(BACKEND),aot_tuned) out_dir=$(REF)/fresh $(ARGS)
 	$(PY) -m learn.combine 'reports=[$(REF)/52,$(REF)/fresh]' out_dir=$(REF)/102
 
 compare:  ## design-by-design comparison of reports against the first (REPORTS=a,b[,c]; LABELS=x,y[,z]; SIZES=n1,n2,..: a scaling fit; reports/compare/)
