@@ -33,8 +33,8 @@ solve-demo:  ## solve one sampled design (NP ranks) into data/demo.h5
 	$(PY) -m fea_factory.sample n=1 out=data/demo
 	$(MPIRUN) -n $(NP) $(PY) -m fea_factory.solve design=data/demo/design_00000.json out=data/demo.h5
 
-dataset:  ## generate N episodes into OUT (JOBS in parallel, NP MPI ranks each); resumable
-	$(PY) -m fea_factory.generate n=$(N) out=$(OUT) jobs=$(JOBS) np=$(NP)
+dataset:  ## generate N episodes into OUT (JOBS in parallel, NP MPI ranks each); resumable (episodes refused for contact or divergence are not solved again under the same settings: ARGS=retry_refused=true)
+	$(PY) -m fea_factory.generate n=$(N) out=$(OUT) jobs=$(JOBS) np=$(NP) $(ARGS)
 
 REF_N ?= 400
 reference-data:  ## the README's learned-simulator data: data/ds_heldout (50 new designs, first: ~16 min, so evaluations over all 102 held-out designs can start) + data/ds_default (REF_N=400; 800 since session 17); resumable; JOBS=2: ~210-250 episodes/h

@@ -8,11 +8,15 @@ Episode i (design seed from (seed, i)) is `out/episode_<i>.h5`. Each episode is 
 An episode file that validates is skipped on a re-run; the writer is atomic (temporary name, then rename),
 so a kill at any moment leaves nothing that looks valid. Every attempt appends one JSON line to
 `out/manifest.jsonl` (episode, seed, status ok | skipped | diverged | contact | error, reason, timings, bytes,
-clearance_mm);
-diverged and failed episodes are never written as data. Shard s of n_shards takes episodes i = s mod n_shards.
+clearance_mm, attempt: the hash of what decides the outcome, `attempt_key`);
+diverged and failed episodes are never written as data. A refusal (contact, diverged) is the physics' answer, not an
+accident: a re-run does not solve that episode again while its design and solve settings are those refused
+(`retry_refused=true` does); an `error` (a crash, a kill) is solved again.
+Shard s of n_shards takes episodes i = s mod n_shards.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import subprocess
@@ -37,6 +41,7 @@ from fea_factory.tradeoff import apply_tolerance
 
 ROOT = Path(__file__).resolve().parent.parent
 SOLVE_GROUPS = ("blocks", "mesh", "material", "scene", "solver")
+REFUSALS = ("contact", "diverged")  # the solve's own verdicts on a design: the same attempt gets the same answer
 
 
 class GenerateConfigError(ValueError):
@@ -53,6 +58,8 @@ def check_config(cfg: DictConfig) -> None:
                              ("jobs", 1, "episodes solved at once"), ("np", 1, "MPI ranks per episode"),
                              ("n_shards", 1, "processes sharing the episodes"), ("shard", 0, "this process's share")):
         integer_in(cfg[key], key, GenerateConfigError, lo, meaning=meaning)  # n=2.5 is refused, not run as 2
+    if not isinstance(cfg.get("retry_refused"), bool):
+        raise GenerateConfigError(f"retry_refused = {cfg.get('retry_refused')!r}: must be true or false")
     if not cfg.shard < cfg.n_shards:
         raise GenerateConfigError(f"shard = {cfg.shard}: must lie in [0, n_shards - 1 = {int(cfg.n_shards) - 1}]")
     # solver.tolerance: fail here if no measured setting meets it (each episode's solve picks again, with np ranks)
@@ -74,24 +81,40 @@ def solve_overrides(task_overrides: list[str]) -> list[str]:
     return keep
 
 
+def attempt_key(design: Design, cfg: DictConfig) -> str:
+    """What decides an episode's outcome, hashed: the design (its JSON) and the resolved solve settings (the
+    SOLVE_GROUPS of the conf, after solver.tolerance's pick, and the MPI ranks). Two attempts with one key solve the
+    same problem; a change of design or of any solve setting makes a new key."""
+    solve = {g: OmegaConf.to_container(cfg[g], resolve=True) for g in SOLVE_GROUPS}
+    text = json.dumps({"design": design.to_dict(), "solve": solve, "np": int(cfg.np)}, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
 class Manifest:
     """Append-only JSON lines, one per episode attempt; flushed and fsynced line by line."""
 
     def __init__(self, path: Path):
         self.path, self.lock = path, threading.Lock()
 
-    def episodes_with_status(self, *statuses: str) -> set[int]:
-        """Episodes that have a record with one of `statuses` (a torn last line from a kill is ignored)."""
-        found = set()
+    def records(self) -> list[dict]:
+        """Every record, in order (a torn last line from a kill is ignored)."""
+        found = []
         if self.path.exists():
             for line in self.path.read_text().splitlines():
                 try:
-                    rec = json.loads(line)
+                    found.append(json.loads(line))
                 except json.JSONDecodeError:
                     continue
-                if rec.get("status") in statuses:
-                    found.add(int(rec["episode"]))
         return found
+
+    def episodes_with_status(self, *statuses: str) -> set[int]:
+        """Episodes that have a record with one of `statuses`."""
+        return {int(rec["episode"]) for rec in self.records() if rec.get("status") in statuses}
+
+    def refused_attempts(self) -> set[tuple[int, str]]:
+        """(episode, attempt key) of every refusal on record (records before the key was recorded have none)."""
+        return {(int(rec["episode"]), rec["attempt"]) for rec in self.records()
+                if rec.get("status") in REFUSALS and rec.get("attempt")}
 
     def append(self, record: dict) -> None:
         line = json.dumps(record, sort_keys=True) + "\n"
@@ -111,6 +134,7 @@ def mpirun_env() -> dict:
 
 def run_episode(i: int, design: Design, out: Path, cfg: DictConfig, overrides: list[str]) -> dict:
     """Solve one design in an MPI subprocess; return its manifest record."""
+    attempt = attempt_key(design, cfg)
     path = episode_path(out, i)
     design_dir = out / "designs"
     design_dir.mkdir(exist_ok=True)
@@ -124,7 +148,7 @@ def run_episode(i: int, design: Design, out: Path, cfg: DictConfig, overrides: l
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, stdin=subprocess.DEVNULL)
     wall = time.perf_counter() - t0
-    record = {"episode": i, "seed": int(cfg.seed), "design": str(design_file), "wall_s": round(wall, 3),
+    record = {"episode": i, "seed": int(cfg.seed), "design": str(design_file), "wall_s": round(wall, 3), "attempt": attempt,
               "family": design.meta.get("family"), "actuators": design.meta.get("actuators")}
     last = proc.stdout.strip().splitlines()[-1] if proc.stdout.strip() else ""
     try:
@@ -179,6 +203,15 @@ def generate(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict:
         todo.append(i)
     overrides = solve_overrides(task_overrides or [])
     designs = {i: sample_designs(cfg.grid, cfg.blocks, n=1, seed=int(cfg.seed), start=i)[0] for i in todo}
+    refused_before = []
+    if not cfg.retry_refused:
+        refused = manifest.refused_attempts()
+        refused_before = [i for i in todo if (i, attempt_key(designs[i], cfg)) in refused]
+        todo = [i for i in todo if i not in set(refused_before)]
+        if refused_before:
+            print(f"generate: {len(refused_before)} episode(s) refused before with this design and these solve "
+                  f"settings, not solved again (retry_refused=true solves them): {refused_before[:10]}"
+                  f"{' ...' if len(refused_before) > 10 else ''}", file=sys.stderr)
     counts = {"ok": 0, "diverged": 0, "contact": 0, "error": 0}
     n_bytes = 0
     t0 = time.perf_counter()
@@ -193,7 +226,8 @@ def generate(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict:
             bar.set_postfix(ok=counts["ok"], failed=counts["diverged"] + counts["contact"] + counts["error"])
             bar.update()
     wall = time.perf_counter() - t0
-    summary = {"done": counts["ok"], "skipped": skipped, "diverged": counts["diverged"], "contact": counts["contact"],
+    summary = {"done": counts["ok"], "skipped": skipped, "refused_before": len(refused_before),
+               "diverged": counts["diverged"], "contact": counts["contact"],
                "error": counts["error"],
                "bytes": n_bytes, "bytes_per_episode": n_bytes // max(counts["ok"], 1), "wall_s": round(wall, 2),
                "episodes_per_hour": round(3600 * counts["ok"] / wall, 1) if counts["ok"] else 0.0,

@@ -59,7 +59,8 @@ def test_invalid_config_is_refused_before_any_solve(tmp_path, override, field):
     ("seed=-3", "seed = -3: must be an integer >= 0 (design seed)"),  # numpy's SeedSequence error, per episode
     ("jobs=two", "jobs = 'two': must be an integer >= 1 (episodes solved at once)"),
     ("np=true", "np = True: must be an integer >= 1 (MPI ranks per episode)"),
-    ("shard=0.5", "shard = 0.5: must be an integer >= 0 (this process's share)")])
+    ("shard=0.5", "shard = 0.5: must be an integer >= 0 (this process's share)"),
+    ("retry_refused=1", "retry_refused = 1: must be true or false")])
 def test_a_count_that_is_not_an_integer_in_range_is_refused_by_name(override, message):
     from hydra import compose, initialize_config_dir
 
@@ -122,7 +123,15 @@ def test_a_grid_that_comes_closer_than_min_clearance_is_refused_not_written(tmp_
     rec = manifest(out)[-1]
     assert rec["status"] == "contact" and "solver.min_clearance_mm = 10000" in rec["reason"]
     assert rec["clearance_mm"] > 0 and not list(out.glob("episode_*.h5"))
-    generate(out, "n=1", "grid=g2x2")  # the default limit: written, its clearance recorded
+    # the same design under the same settings is not solved again: the refusal stands, no new record
+    r = generate(out, "n=1", "grid=g2x2", "solver.min_clearance_mm=10000")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert json.loads(r.stdout.strip().splitlines()[-1])["refused_before"] == 1
+    assert "retry_refused=true" in r.stderr and len(manifest(out)) == 1
+    generate(out, "n=1", "grid=g2x2", "solver.min_clearance_mm=10000", "retry_refused=true")  # asked: solved again
+    assert [rec["status"] for rec in manifest(out)] == ["contact", "contact"]
+    assert manifest(out)[0]["attempt"] == manifest(out)[1]["attempt"]
+    generate(out, "n=1", "grid=g2x2")  # the default limit, a new attempt: written, its clearance recorded
     rec = manifest(out)[-1]
     assert rec["status"] == "ok" and rec["clearance_mm"] > 0.5
     from data_schema.episode import read_episode
