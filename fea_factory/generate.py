@@ -148,8 +148,8 @@ def run_episode(i: int, design: Design, out: Path, cfg: DictConfig, overrides: l
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, stdin=subprocess.DEVNULL)
     wall = time.perf_counter() - t0
-    record = {"episode": i, "seed": int(cfg.seed), "design": str(design_file), "wall_s": round(wall, 3), "attempt": attempt,
-              "family": design.meta.get("family"), "actuators": design.meta.get("actuators")}
+    record = {"episode": i, "seed": int(cfg.seed), "design": str(design_file), "wall_s": round(wall, 3),
+              "attempt": attempt, "family": design.meta.get("family"), "actuators": design.meta.get("actuators")}
     last = proc.stdout.strip().splitlines()[-1] if proc.stdout.strip() else ""
     try:
         result = json.loads(last)
