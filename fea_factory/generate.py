@@ -207,7 +207,8 @@ def generate(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict:
     if not cfg.retry_refused:
         refused = manifest.refused_attempts()
         refused_before = [i for i in todo if (i, attempt_key(designs[i], cfg)) in refused]
-        todo = [i for i in todo if i not in set(refused_before)]
+        standing = set(refused_before)
+        todo = [i for i in todo if i not in standing]
         if refused_before:
             print(f"generate: {len(refused_before)} episode(s) refused before with this design and these solve "
                   f"settings, not solved again (retry_refused=true solves them): {refused_before[:10]}"
