@@ -12,7 +12,7 @@ export OMPI_ALLOW_RUN_AS_ROOT=1
 export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset reference-data large-data validate fingerprint bench-fea stability bench-rollout tradeoff train evaluate reference-train finetune reference-evaluate compare validity-calibration curves diagnose predict sweep learned-extremes clean
+.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset reference-data large-data validate fingerprint bench-fea stability bench-rollout tradeoff train evaluate reference-train finetune reference-evaluate publish compare validity-calibration curves diagnose predict sweep learned-extremes clean
 
 help:  ## list the targets
 	@grep -E '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-12s %s\n", $$1, $$2}'
@@ -75,6 +75,10 @@ reference-evaluate:  ## CKPT (or CKPT='[a.pt,b.pt]', an ensemble) on the 102 hel
 	$(PY) -m learn.evaluate "checkpoint=$(or $(CKPT),runs/reference/best.pt)" data_dir=data/ds_default split=val+test plots=false threads=1 rollout_backend=$(or $(BACKEND),aot_tuned) out_dir=$(REF)/52 $(ARGS)
 	$(PY) -m learn.evaluate "checkpoint=$(or $(CKPT),runs/reference/best.pt)" data_dir=data/ds_heldout split=all timing_repeats=1 plots=false threads=1 rollout_backend=$(or $(BACKEND),aot_tuned) out_dir=$(REF)/fresh $(ARGS)
 	$(PY) -m learn.combine 'reports=[$(REF)/52,$(REF)/fresh]' out_dir=$(REF)/102
+
+publish:  ## keep a trained model in the repository: CKPT (or CKPT='[a.pt,b.pt]', an ensemble) -> models/NAME/ + card.json (REPORT=its report dir, e.g. reports/x/102: figures on the card); commit it; CKPT=models/NAME works wherever a checkpoint is read
+	@test -n "$(CKPT)" -a -n "$(NAME)" || { echo "make publish: CKPT=runs/<run>/best.pt (or '[a.pt,b.pt]') and NAME=<name> are required" >&2; exit 2; }
+	$(PY) -m learn.publish "checkpoints=$(CKPT)" name=$(NAME) $(if $(REPORT),report=$(REPORT)) $(ARGS)
 
 compare:  ## design-by-design comparison of reports against the first (REPORTS=a,b[,c]; LABELS=x,y[,z]; SIZES=n1,n2,..: a scaling fit; reports/compare/)
 	$(PY) -m learn.compare 'reports=[$(REPORTS)]' $(if $(LABELS),'labels=[$(LABELS)]') $(if $(SIZES),'sizes=[$(SIZES)]') out_dir=$(or $(CMP),reports/compare)

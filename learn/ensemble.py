@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from learn import checkpoint
+from learn import checkpoint, publish
 from learn.model import Simulator
 
 
@@ -62,11 +62,12 @@ class Ensemble(nn.Module):
 
 
 def checkpoint_paths(value) -> list[str]:
-    """conf `checkpoint`: one path, or a list of paths (an ensemble: 'checkpoint=[runs/a/best.pt,runs/b/best.pt]')."""
+    """conf `checkpoint`: one path, or a list of paths (an ensemble: 'checkpoint=[runs/a/best.pt,runs/b/best.pt]');
+    a published model's directory (models/<name>) is its members, each checked against its card's sha256."""
     paths = [str(v) for v in ([value] if isinstance(value, (str, Path)) else value)]
     if not paths or not all(paths):
         raise ValueError(f"checkpoint={value!r}: give one checkpoint path or a list of them (an ensemble)")
-    return paths
+    return [m for p in paths for m in (publish.members(p) if publish.is_published(p) else [p])]
 
 
 def load(paths: list[str | Path]) -> tuple[Simulator | Ensemble, dict]:

@@ -50,7 +50,7 @@ def settings(text: str) -> list[tuple[int, bool, int]]:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--checkpoint", default="runs/train/best.pt",
-                   help="a checkpoint, or several joined by ',' (an ensemble)")
+                   help="a checkpoint, or several joined by ',' (an ensemble), or a published models/<name>")
     p.add_argument("--data-dir", help="default: the checkpoint's data_dir")
     p.add_argument("--designs", type=int, default=8, help="test designs timed (the first by name)")
     p.add_argument("--repeats", type=int, default=30)
@@ -67,7 +67,7 @@ def main() -> None:
     a = p.parse_args()
     torch.set_num_threads(1)
     backends = [backend_checked(b) for b in a.backend.split(",")]
-    sources = a.checkpoint.split(",")
+    sources = ensemble.checkpoint_paths(a.checkpoint.split(","))  # models/<name>: its members
     model, ckpt = ensemble.load(sources)
     members = len(ensemble.members_of(model))
     data_dir = Path(a.data_dir or ckpt["config"]["data_dir"])
