@@ -12,7 +12,7 @@ export OMPI_ALLOW_RUN_AS_ROOT=1
 export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset reference-data large-data validate fingerprint bench-fea stability bench-rollout tradeoff train evaluate reference-train finetune reference-evaluate publish compare validity-calibration curves diagnose predict sweep learned-extremes clean
+.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset reference-data large-data validate fingerprint bench-fea stability bench-rollout tradeoff train evaluate reference-train finetune reference-evaluate publish record-data record record-status record-evaluate compare validity-calibration curves diagnose predict sweep learned-extremes clean
 
 help:  ## list the targets
 	@grep -E '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-12s %s\n", $$1, $$2}'
@@ -79,6 +79,19 @@ reference-evaluate:  ## CKPT (or CKPT='[a.pt,b.pt]', an ensemble) on the 102 hel
 publish:  ## keep a trained model in the repository: CKPT (or CKPT='[a.pt,b.pt]', an ensemble) -> models/NAME/ + card.json (REPORT=its report dir, e.g. reports/x/102: figures on the card); commit it; CKPT=models/NAME works wherever a checkpoint is read
 	@test -n "$(CKPT)" -a -n "$(NAME)" || { echo "make publish: CKPT=runs/<run>/best.pt (or '[a.pt,b.pt]') and NAME=<name> are required" >&2; exit 2; }
 	$(PY) -m learn.publish "checkpoints=$(CKPT)" name=$(NAME) $(if $(REPORT),report=$(REPORT)) $(ARGS)
+
+record-data:  ## every episode the record chain trains and is evaluated on (conf/record.yaml: ds_heldout 50, ds_default 800, ds_large 300, ds_val 100); JOBS=2; resumable
+	$(PY) scripts/record.py data --jobs $(JOBS)
+
+record:  ## the record model rebuilt on a fresh machine (conf/record.yaml): SEED=0|1's stages in order, each resumable, for at most BUDGET_MIN minutes (150); run SEED=0 and SEED=1 side by side, again each session until finished
+	$(PY) scripts/record.py train --seed $(or $(SEED),0) --budget-min $(or $(BUDGET_MIN),150)
+
+record-status:  ## where the record chain stands: episodes generated, each seed's stages
+	$(PY) scripts/record.py status
+
+record-evaluate:  ## the record pair (each seed's last stage) on the 102 held-out designs -> reports/record/102, then published as models/record_pair (commit it)
+	$(MAKE) reference-evaluate "CKPT=[$$($(PY) scripts/record.py members)]" REF=reports/record
+	$(MAKE) publish "CKPT=[$$($(PY) scripts/record.py members)]" NAME=$$($(PY) -c "from omegaconf import OmegaConf; print(OmegaConf.load('conf/record.yaml').publish_as)") REPORT=reports/record/102
 
 compare:  ## design-by-design comparison of reports against the first (REPORTS=a,b[,c]; LABELS=x,y[,z]; SIZES=n1,n2,..: a scaling fit; reports/compare/)
 	$(PY) -m learn.compare 'reports=[$(REPORTS)]' $(if $(LABELS),'labels=[$(LABELS)]') $(if $(SIZES),'sizes=[$(SIZES)]') out_dir=$(or $(CMP),reports/compare)

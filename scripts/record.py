@@ -1,0 +1,141 @@
+"""The record model rebuilt from nothing, stage by stage (conf/record.yaml), so a fresh machine gets back to it by
+re-running the same commands session after session:
+
+    make record-data JOBS=2          # every episode conf/record.yaml lists (resumable; refusals stand)
+    make record SEED=0 BUDGET_MIN=150 & make record SEED=1 BUDGET_MIN=150   # side by side, one core each
+    make record-evaluate             # the pair's last stages on the 102 held-out designs, then models/<publish_as>
+
+`train` runs the stages of one seed in order. A finished stage is skipped; a started one resumes from its last.pt;
+each gets a time limit that ends it before the budget of this invocation runs out (learn.train's time_limit_min counts
+a run's training minutes over all its invocations, so the limit is the minutes done plus what the budget leaves),
+and a stage that pauses stops the chain: the next stage never starts from an unfinished one. Training refuses to start
+until every episode of `data` is generated (or refused by the solver), so every seed trains on the same designs.
+`status` prints where both seeds and the data stand.
+"""
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+from omegaconf import OmegaConf  # noqa: E402
+
+from fea_factory.generate import REFUSALS, Manifest  # noqa: E402
+
+CONF = ROOT / "conf" / "record.yaml"
+MIN_STAGE_MIN = 5.0  # a stage is not started with less than this left of the budget
+
+
+def conf(path: Path = CONF):
+    return OmegaConf.load(path)
+
+
+def missing_episodes(entry) -> list[int]:
+    """Indices of `entry`'s range with no record of a written episode or a refusal."""
+    done = Manifest(ROOT / entry.out / "manifest.jsonl").episodes_with_status("ok", *REFUSALS)
+    return sorted(set(range(int(entry.start), int(entry.start) + int(entry.n))) - done)
+
+
+def stage_state(run_dir: Path) -> tuple[str, float]:
+    """('finished' | 'paused' | 'new', minutes of training done) of one stage's run."""
+    import torch
+
+    last = ROOT / run_dir / "last.pt"
+    if not last.exists():
+        return "new", 0.0
+    ckpt = torch.load(last, map_location="cpu", weights_only=True)
+    minutes = float((ckpt.get("history") or [{}])[-1].get("seconds", 0.0)) / 60
+    return ("finished" if ckpt.get("finished") else "paused"), minutes
+
+
+def run_dir(cfg, seed: int, name: str) -> Path:
+    """Relative to the repository (the commands run there; checkpoints record the paths they were given)."""
+    return Path(f"{cfg.run_root}_s{seed}") / name
+
+
+def data(cfg, jobs: int) -> int:
+    for entry in cfg.data:
+        cmd = [sys.executable, "-m", "fea_factory.generate", f"n={entry.n}", f"start={entry.start}",
+               f"out={entry.out}", f"jobs={jobs}", "np=1", *entry.args]
+        print("[record]", " ".join(cmd), flush=True)
+        rc = subprocess.call(cmd, cwd=ROOT)
+        if rc:
+            return rc
+    return 0
+
+
+def train(cfg, seed: int, budget_min: float) -> int:
+    deadline = time.monotonic() + 60 * budget_min
+    short = {e.out: len(m) for e in cfg.data if (m := missing_episodes(e))}
+    if short:
+        print(f"[record] data not complete: {', '.join(f'{k} lacks {v}' for k, v in short.items())} episodes; "
+              "run make record-data first", file=sys.stderr)
+        return 2
+    for stage in cfg.stages:
+        rd = run_dir(cfg, seed, stage.name)
+        state, done = stage_state(rd)
+        if state == "finished":
+            print(f"[record] seed {seed} {stage.name}: finished ({done:.0f} min)", flush=True)
+            continue
+        left = (deadline - time.monotonic()) / 60
+        if left < MIN_STAGE_MIN:
+            print(f"[record] seed {seed}: budget spent before {stage.name}; run the same command again to go on")
+            return 3
+        start = [] if stage["from"] is None else [f"init_from={run_dir(cfg, seed, stage['from'])}"]
+        cmd = [sys.executable, "-m", "learn.train", *stage.args, *start, f"seed={seed}", f"run_dir={rd}",
+               f"time_limit_min={done + left:.1f}"]
+        print(f"[record] seed {seed} {stage.name} ({state}, {done:.0f} min done):", " ".join(cmd), flush=True)
+        rc = subprocess.call(cmd, cwd=ROOT)
+        if rc:
+            return rc
+        state, done = stage_state(rd)
+        if state != "finished":
+            print(f"[record] seed {seed} {stage.name} paused at {done:.0f} min (budget); run the same command again "
+                  "to go on")
+            return 3
+    print(f"[record] seed {seed}: every stage finished; its member: {run_dir(cfg, seed, cfg.stages[-1].name)}/last.pt")
+    return 0
+
+
+def members(cfg) -> list[str]:
+    return [str(run_dir(cfg, s, cfg.stages[-1].name) / "last.pt") for s in cfg.seeds]
+
+
+def status(cfg) -> int:
+    for e in cfg.data:
+        print(f"{e.out}: {int(e.n) - len(missing_episodes(e))} of {e.n} episodes done")
+    for seed in cfg.seeds:
+        print(f"seed {seed}: " + ", ".join(f"{s.name} {st} ({m:.0f} min)" for s in cfg.stages
+                                          for st, m in [stage_state(run_dir(cfg, seed, s.name))]))
+    return 0
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("what", choices=("data", "train", "status", "members"))
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--jobs", type=int, default=2)
+    p.add_argument("--budget-min", type=float, default=150.0, help="minutes this invocation may train")
+    p.add_argument("--conf", type=Path, default=CONF)
+    a = p.parse_args(argv)
+    cfg = conf(a.conf)
+    if a.what == "train" and a.seed not in list(cfg.seeds):
+        p.error(f"--seed {a.seed}: conf/record.yaml's seeds are {list(cfg.seeds)}")
+    if a.budget_min <= 0:
+        p.error(f"--budget-min {a.budget_min}: must be > 0 minutes")
+    if a.what == "data":
+        return data(cfg, a.jobs)
+    if a.what == "train":
+        return train(cfg, a.seed, a.budget_min)
+    if a.what == "members":
+        print(",".join(members(cfg)))
+        return 0
+    return status(cfg)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,98 @@
+"""scripts/record.py: the record chain (conf/record.yaml) composes, waits for its data, runs its stages in order,
+skips what is finished and never starts a stage from an unfinished one (tiny synthetic data)."""
+import json
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from data_schema.episode import write_episode
+from data_schema.testing import synthetic_episode
+from tests.test_learn_train import cfg_for
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "scripts"))
+import record  # noqa: E402
+
+
+def test_every_stage_of_the_record_composes_with_the_training_conf():
+    cfg = record.conf()
+    names = [s.name for s in cfg.stages]
+    assert len(names) == len(set(names)) and cfg.stages[0]["from"] is None
+    for stage in cfg.stages[1:]:  # each starts from an earlier stage's checkpoint
+        assert stage["from"].split("/")[0] in names[:names.index(stage.name)]
+    for stage in cfg.stages:
+        train = cfg_for("train", list(stage.args))
+        assert train.model.passes == 2 and train.threads == 1
+    assert cfg_for("train", list(cfg.stages[0].args)).epochs == 18
+    outs = {e.out for e in cfg.data}
+    for stage in cfg.stages[1:]:  # the fine-tunes read only data the record generates
+        train = cfg_for("train", list(stage.args))
+        assert {train.data_dir, *train.train_extra_dirs, *train.val_extra_dirs} <= outs and train.init_required
+
+
+def write_manifest(out: Path, episodes: dict[int, str]) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / "manifest.jsonl", "w") as f:
+        for i, status in episodes.items():
+            f.write(json.dumps({"episode": i, "status": status}) + "\n")
+
+
+def test_missing_episodes_are_those_neither_written_nor_refused(tmp_path):
+    write_manifest(tmp_path / "d", {10: "ok", 11: "contact", 12: "error", 13: "diverged"})
+    entry = OmegaConf.create({"out": str(tmp_path / "d"), "start": 10, "n": 6, "args": []})
+    assert record.missing_episodes(entry) == [12, 14, 15]  # an error is retried by the generator: still missing
+
+
+@pytest.fixture
+def chain(tmp_path):
+    data = tmp_path / "eps"
+    for s in range(4):
+        write_episode(data / f"ep{s:03d}.h5", synthetic_episode(3, 3, 5, 3, 3, frames=11, seed=s))
+    write_manifest(data, {s: "ok" for s in range(4)})
+    tiny = [f"data_dir={data}", "model.latent=16", "model.widths=[32,16]", "rotations=2", "lattice_turns=1",
+            "log_every=100", "threads=1", "split.train=0.5", "split.val=0.25", "split.test=0.25", "epochs=1"]
+    cfg = {"data": [{"out": str(data), "start": 0, "n": 4, "args": []}],
+           "stages": [{"name": "a", "from": None, "args": tiny},
+                      {"name": "b", "from": "a/last.pt", "args": [*tiny, "optim.lr=1e-4", "init_required=true"]}],
+           "run_root": str(tmp_path / "runs" / "rec"), "seeds": [0, 1], "publish_as": "x"}
+    path = tmp_path / "record.yaml"
+    OmegaConf.save(OmegaConf.create(cfg), path)
+    return path, tmp_path / "runs"
+
+
+def test_the_stages_run_in_order_each_from_the_last_and_a_second_run_skips_them(chain, capsys):
+    path, runs = chain
+    assert record.main(["train", "--seed", "1", "--conf", str(path), "--budget-min", "30"]) == 0
+    a, b = (torch.load(runs / "rec_s1" / n / "last.pt", weights_only=True) for n in ("a", "b"))
+    assert a["finished"] and b["finished"] and a["config"]["seed"] == b["config"]["seed"] == 1
+    assert b["config"]["init_from"] == str(runs / "rec_s1" / "a" / "last.pt")
+    assert b["split"] == a["split"]
+    capsys.readouterr()
+    assert record.main(["train", "--seed", "1", "--conf", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "a: finished" in out and "b: finished" in out and "learn.train" not in out
+    assert record.main(["members", "--conf", str(path)]) == 0
+    assert capsys.readouterr().out.strip() == f"{runs}/rec_s0/b/last.pt,{runs}/rec_s1/b/last.pt"
+
+
+def test_no_stage_starts_without_its_data_or_its_budget_nor_from_an_unfinished_one(chain, capsys):
+    path, runs = chain
+    cfg = OmegaConf.load(path)
+    cfg.data[0].n = 6  # two episodes not generated yet
+    short = path.with_name("short.yaml")
+    OmegaConf.save(cfg, short)
+    assert record.main(["train", "--conf", str(short)]) == 2 and not runs.exists()
+    assert "lacks 2 episodes; run make record-data" in capsys.readouterr().err
+    assert record.main(["train", "--conf", str(path), "--budget-min", "0.01"]) == 3 and not runs.exists()
+    paused = runs / "rec_s0" / "a"  # a first stage stopped by its time limit
+    assert record.main(["train", "--conf", str(path), "--budget-min", "30"]) == 0
+    ckpt = torch.load(paused / "last.pt", weights_only=True)
+    torch.save({**ckpt, "finished": False}, paused / "last.pt")
+    assert record.stage_state(paused)[0] == "paused"
+    assert record.main(["train", "--conf", str(path), "--budget-min", "0.01"]) == 3  # resumes nothing, starts nothing
+    assert "budget spent before a" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        record.main(["train", "--seed", "7", "--conf", str(path)])
