@@ -9,7 +9,7 @@ report=reports/s52_ft5_pair/102` (conf/publish.yaml; `make publish`) writes mode
 - card.json: each member's sha256 and bytes, its training data and start, and the figures of the named evaluation.
 
 runs/ live on the machine that trained them; a fresh machine has none, and every result they carried was lost with
-them four times (sessions 21, 23, 38, 53). A committed directory is not. Wherever a checkpoint is read
+them ten times (sessions 21-53). A committed directory is not. Wherever a checkpoint is read
 (learn.ensemble.checkpoint_paths: learn.evaluate, learn.predict, make reference-evaluate), `models/<name>` stands for
 its members, each checked against the card's sha256 first.
 """
