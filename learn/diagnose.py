@@ -32,7 +32,7 @@ import torch
 from omegaconf import DictConfig
 
 from data_schema import atomic
-from learn import checkpoint, ensemble
+from learn import checkpoint, publish
 from learn.checks import integer_in
 from learn.dataset import GraphSet, design_paths, load_features
 from learn.features import BEAM_POINTS, JOINT_POINTS, rebuild_all_points
@@ -211,11 +211,7 @@ def plot(report: dict, path: Path) -> None:
 
 def diagnose(cfg: DictConfig) -> dict:
     torch.set_num_threads(integer_in(cfg.threads, "threads", 1, 1024, "torch threads"))
-    paths = ensemble.checkpoint_paths(cfg.checkpoint)  # a published models/<name>: its checked members
-    if len(paths) != 1:
-        raise ValueError(f"checkpoint={cfg.checkpoint}: diagnose reads one model, this is {len(paths)}; name one "
-                         f"member ({', '.join(paths)})")
-    ckpt = checkpoint.load(paths[0])
+    ckpt = checkpoint.load(publish.one_checkpoint(cfg.checkpoint, "checkpoint"))  # or a published models/<name>
     model = checkpoint.model_from(ckpt)
     data_dir = Path(cfg.data_dir or ckpt["config"]["data_dir"])
     unknown = [s for s in cfg.splits if s not in ckpt["split"]]

@@ -73,6 +73,18 @@ def members(directory: str | Path) -> list[str]:
     return paths
 
 
+def one_checkpoint(value: str | Path, key: str) -> str:
+    """A conf key that names one model (init_from, split_from, diagnose's checkpoint): a path, or a published
+    models/<name> of one member; a published ensemble is refused naming its member files."""
+    if not is_published(value):
+        return str(value)
+    paths = members(value)
+    if len(paths) != 1:
+        raise ValueError(f"{key}={value}: a published ensemble of {len(paths)} members; {key} takes one model: name "
+                         f"a member ({', '.join(paths)})")
+    return paths[0]
+
+
 def stripped(ckpt: dict) -> dict:
     """The checkpoint without what only resuming reads."""
     return {k: v for k, v in ckpt.items() if k not in RESUME_ONLY}

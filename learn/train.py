@@ -14,7 +14,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
-from learn import checkpoint
+from learn import checkpoint, publish
 from learn.checks import integer_in, number_in
 from learn.conditions import envelope
 from learn.dataset import (GraphSet, TurnedSet, augment, augment_angles, episode_paths, extend_split,
@@ -371,7 +371,8 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
         log.info("run in %s has already finished (epoch %d); nothing to do", run_dir, resumed["epoch"])
         return resumed["summary"]
 
-    init = None if resumed or not cfg.get("init_from") else checkpoint.load(cfg.init_from)
+    init = None if resumed or not cfg.get("init_from") else checkpoint.load(
+        publish.one_checkpoint(cfg.init_from, "init_from"))  # a run's checkpoint or a published models/<name>
     extra_dirs = extra_dirs_checked(cfg.get("train_extra_dirs"))  # before any episode is read
     val_dirs = extra_dirs_checked(cfg.get("val_extra_dirs"), "val_extra_dirs", "make validation-data")
     features = load_features(episode_paths(cfg.data_dir))
@@ -382,8 +383,9 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
     if resumed:
         split = resumed["split"]
     elif cfg.get("split_from") or init:  # keep an earlier run's held-out designs; new episodes join train
-        split = extend_split(checkpoint.split_of(cfg.split_from) if cfg.get("split_from") else init["split"],
-                             by_name, cfg.get("split_missing", "error"))
+        kept = (checkpoint.split_of(publish.one_checkpoint(cfg.split_from, "split_from")) if cfg.get("split_from")
+                else init["split"])
+        split = extend_split(kept, by_name, cfg.get("split_missing", "error"))
         extra_names = {f.name for f in extra}  # join after the cut below, once (session 44: they came in twice)
         split = {**split, "train": [n for n in split["train"] if n not in extra_names]}
     else:

@@ -73,12 +73,18 @@ def test_the_card_carries_the_figures_of_the_report_measured_with_exactly_its_me
     assert not (tmp_path / "only_one").exists()
 
 
-def test_a_published_member_is_a_start_for_a_fine_tune(members, data_dir, tmp_path):  # noqa: F811
+def test_a_published_model_is_a_start_for_a_fine_tune_and_an_ensemble_is_refused_as_one(members, data_dir,  # noqa: F811
+                                                                                          pair_report, tmp_path):
     target = publish.publish([members[0]], "start", tmp_path / "models")
-    start = ensemble.checkpoint_paths(str(target))[0]
-    train(cfg_for("train", tiny(data_dir, tmp_path / "ft", "epochs=1", f"init_from={start}")))
-    tuned = checkpoint.load(tmp_path / "ft" / "last.pt")
-    assert tuned["config"]["init_from"] == start and tuned["split"] == checkpoint.load(members[0])["split"]
+    for i, start in enumerate([str(target), ensemble.checkpoint_paths(str(target))[0]]):  # the directory or its file
+        train(cfg_for("train", tiny(data_dir, tmp_path / f"ft{i}", "epochs=1", f"init_from={start}")))
+        tuned = checkpoint.load(tmp_path / f"ft{i}" / "last.pt")
+        assert tuned["config"]["init_from"] == start and tuned["split"] == checkpoint.load(members[0])["split"]
+    pair, _ = pair_report
+    for key in ("init_from", "split_from"):
+        with pytest.raises(ValueError, match=f"{key}=.*pair_test: a published ensemble of 2 members"):
+            train(cfg_for("train", tiny(data_dir, tmp_path / key, "epochs=1", f"{key}={pair}")))
+        assert not (tmp_path / key / "last.pt").exists()
 
 
 def test_a_member_changed_after_publishing_is_refused_by_name(members, tmp_path):
