@@ -2,7 +2,7 @@
 re-running the same commands session after session:
 
     make record-data JOBS=2          # every episode conf/record.yaml lists (resumable; refusals stand)
-    make record SEED=0 BUDGET_MIN=150 & make record SEED=1 BUDGET_MIN=150   # side by side, one core each
+    make record BUDGET_MIN=150       # every seed's stages side by side, one core each (SEED=0: one seed alone)
     make record-evaluate             # the pair's last stages on the 102 held-out designs, then models/<publish_as>
 
 `train` runs the stages of one seed in order. A finished stage is skipped; a started one resumes from its last.pt;
@@ -27,7 +27,8 @@ from omegaconf import OmegaConf  # noqa: E402
 from fea_factory.generate import REFUSALS, Manifest  # noqa: E402
 
 CONF = ROOT / "conf" / "record.yaml"
-MIN_STAGE_MIN = 5.0  # a stage is not started with less than this left of the budget
+MIN_STAGE_MIN = 5.0
+OUTCOMES = {0: "every stage finished", 3: "paused (budget): run the same command again to go on"}  # a stage is not started with less than this left of the budget
 
 
 def conf(path: Path = CONF):
@@ -101,6 +102,24 @@ def train(cfg, seed: int, budget_min: float) -> int:
     return 0
 
 
+def side_by_side(cfg, conf_path: Path, seeds: list[int], budget_min: float, log_dir: Path) -> int:
+    """Every seed's chain at once, one process (one core) each, each writing log_dir/record_s<seed>.log."""
+    log_dir.mkdir(parents=True, exist_ok=True)
+    procs = []
+    for seed in seeds:
+        log = log_dir / f"record_s{seed}.log"
+        with open(log, "a") as out:
+            procs.append((seed, log, subprocess.Popen(
+                [sys.executable, __file__, "train", "--seed", str(seed), "--budget-min", str(budget_min),
+                 "--conf", str(conf_path)], cwd=ROOT, stdout=out, stderr=subprocess.STDOUT)))
+        print(f"[record] seed {seed}: started (pid {procs[-1][2].pid}), log {log}", flush=True)
+    codes = {seed: p.wait() for seed, _, p in procs}
+    for seed, log, _ in procs:
+        print(f"[record] seed {seed}: {OUTCOMES.get(codes[seed], f'failed (exit {codes[seed]}): see {log}')}")
+    failed = [c for c in codes.values() if c not in OUTCOMES]
+    return failed[0] if failed else max(codes.values())
+
+
 def members(cfg) -> list[str]:
     return [str(run_dir(cfg, s, cfg.stages[-1].name) / "last.pt") for s in cfg.seeds]
 
@@ -117,19 +136,22 @@ def status(cfg) -> int:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("what", choices=("data", "train", "status", "members"))
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=None, help="one seed's chain; default: every seed side by side")
+    p.add_argument("--log-dir", type=Path, default=ROOT / "logs", help="side by side: record_s<seed>.log here")
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--budget-min", type=float, default=150.0, help="minutes this invocation may train")
     p.add_argument("--conf", type=Path, default=CONF)
     a = p.parse_args(argv)
     cfg = conf(a.conf)
-    if a.what == "train" and a.seed not in list(cfg.seeds):
+    if a.what == "train" and a.seed is not None and a.seed not in list(cfg.seeds):
         p.error(f"--seed {a.seed}: conf/record.yaml's seeds are {list(cfg.seeds)}")
     if a.budget_min <= 0:
         p.error(f"--budget-min {a.budget_min}: must be > 0 minutes")
     if a.what == "data":
         return data(cfg, a.jobs)
     if a.what == "train":
+        if a.seed is None:
+            return side_by_side(cfg, a.conf, [int(k) for k in cfg.seeds], a.budget_min, a.log_dir)
         return train(cfg, a.seed, a.budget_min)
     if a.what == "members":
         print(",".join(members(cfg)))

@@ -84,15 +84,25 @@ def test_no_stage_starts_without_its_data_or_its_budget_nor_from_an_unfinished_o
     cfg.data[0].n = 6  # two episodes not generated yet
     short = path.with_name("short.yaml")
     OmegaConf.save(cfg, short)
-    assert record.main(["train", "--conf", str(short)]) == 2 and not runs.exists()
+    assert record.main(["train", "--seed", "0", "--conf", str(short)]) == 2 and not runs.exists()
     assert "lacks 2 episodes; run make record-data" in capsys.readouterr().err
-    assert record.main(["train", "--conf", str(path), "--budget-min", "0.01"]) == 3 and not runs.exists()
+    assert record.main(["train", "--seed", "0", "--conf", str(path), "--budget-min", "0.01"]) == 3 and not runs.exists()
     paused = runs / "rec_s0" / "a"  # a first stage stopped by its time limit
-    assert record.main(["train", "--conf", str(path), "--budget-min", "30"]) == 0
+    assert record.main(["train", "--seed", "0", "--conf", str(path), "--budget-min", "30"]) == 0
     ckpt = torch.load(paused / "last.pt", weights_only=True)
     torch.save({**ckpt, "finished": False}, paused / "last.pt")
     assert record.stage_state(paused)[0] == "paused"
-    assert record.main(["train", "--conf", str(path), "--budget-min", "0.01"]) == 3  # resumes nothing, starts nothing
+    assert record.main(["train", "--seed", "0", "--conf", str(path), "--budget-min", "0.01"]) == 3  # resumes nothing, starts nothing
     assert "budget spent before a" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         record.main(["train", "--seed", "7", "--conf", str(path)])
+
+
+def test_without_a_seed_every_seed_trains_side_by_side_each_into_its_own_log(chain, tmp_path, capsys):
+    path, runs = chain
+    assert record.main(["train", "--conf", str(path), "--log-dir", str(tmp_path / "logs")]) == 0
+    out = capsys.readouterr().out
+    for seed in (0, 1):
+        assert torch.load(runs / f"rec_s{seed}" / "b" / "last.pt", weights_only=True)["finished"]
+        assert f"seed {seed}: every stage finished" in out
+        assert "every stage finished" in (tmp_path / "logs" / f"record_s{seed}.log").read_text()
