@@ -70,7 +70,7 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
                    geometry: str = "columns", carry: float = 1.0, chord_weight: float = 0.0,
                    final_weight: float = 0.0, noise_every_step: bool = False,
                    point_weight: float = 1.0, noise_shape: str = "columns",
-                   noise_start: bool = True) -> torch.Tensor:
+                   noise_start: bool = True, item_power: float = 1.0) -> torch.Tensor:
     """Mean squared error of the states after 1..horizon steps from every start frame; `noise_std` (in units of
     the per-column step std) perturbs the start states so the model learns to correct its own drift;
     noise_every_step: also the state every later step starts from (the one the model reached), on the columns the
@@ -94,7 +94,11 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
     so: the turn of each beam relative to itself, which the absolute columns (whose step std is the motion of the
     whole grid) weigh little, and which carried by the lever arm is most of the position error (docs/learned_simulator.md).
     final_weight > 0 adds, at that weight, the state columns' error at the episode's final frame (where the unroll
-    reaches it): the shape a designer asks for, and the frame whose error the evaluation's max over frames mostly is."""
+    reaches it): the shape a designer asks for, and the frame whose error the evaluation's max over frames mostly is.
+    item_power p > 1: the batch's loss is the power mean (mean_i L_i^p)^(1/p) of its items' losses L_i (each item's
+    share of every term above, times the item count, so that at p = 1 their mean is the loss as above), which weighs
+    an item's gradient by (L_i / the power mean)^(p-1): the designs the model answers worst weigh more (the tail of
+    the evaluation's distribution, its p95, not its median)."""
     if geometry not in GEOMETRY_LOSSES:
         raise ValueError(f"loss geometry={geometry!r}: must be {' | '.join(GEOMETRY_LOSSES)}")
     F = len(batch.t)
@@ -124,12 +128,13 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
         scale = scale.mean()
     if chord_weight > 0:
         chord_std = beam_chords(batch.beam_state).diff(dim=0).flatten(0, -2).std(0).clamp_min(1e-3)
-    columns = lambda ej, eb: (wj * ej ** 2).mean() + (wb * eb ** 2).mean()  # noqa: E731
+    reduce = item_reducer(batch, item_power)
+    columns = lambda ej, eb: reduce(wj * ej ** 2, "joint", -2) + reduce(wb * eb ** 2, "beam", -2)  # noqa: E731
     every = noise_every_step and noise_std > 0 and not model.direct
     if every:  # in raw units: the step std of each column the network reads, 0 on the others
         read = float(model.args.get("stress_input", True))  # the stress columns' weight: 1 where they are read
         nj, nb = (noise_std * std * column_weights(spec, read) for std, spec in ((joint_std, JOINT), (beam_std, BEAM)))
-    loss = torch.zeros(())
+    loss = torch.zeros(() if item_power == 1 else len(batch))
     for k in range(h):
         if every and k > 0:  # the state the model reached, displaced
             j, b = displaced(j, b, nj, nb)
@@ -147,14 +152,35 @@ def multistep_loss(model: Simulator, batch: GraphSet, horizon: int = 1, noise_st
         ej, eb = (j - tj) / joint_std, (b - tb) / beam_std
         loss = loss + columns(ej, eb)
         if chord_weight > 0:
-            loss = loss + chord_weight * ((beam_chords(b) - beam_chords(tb)) / chord_std).square().mean()
+            loss = loss + chord_weight * reduce(((beam_chords(b) - beam_chords(tb)) / chord_std).square(), "beam", -2)
         if point_w:
             d = (rebuild_all_points(j, b) - rebuild_all_points(tj, tb)) / scale
-            loss = loss + point_w * d.square().sum(-1).mean()
+            loss = loss + point_w * reduce(d.square().sum(-1), "point", -1)
     loss = loss / h
     if final_weight > 0:  # the last step from the last start frame S-1 lands on the episode's final frame F-1
         loss = loss + final_weight * columns(ej[-1], eb[-1])
-    return loss
+    return loss if item_power == 1 else loss.pow(item_power).mean().pow(1 / item_power)
+
+
+ITEM_POWER_RANGE = (1.0, 16.0)  # item_power (conf/train.yaml): 1 = every item alike; 16 ~ the worst item's loss
+
+
+def item_reducer(batch: GraphSet, item_power: float):
+    """reduce(x, block, row_dim): x.mean() at item_power 1 (the loss as it always was); otherwise [n_items] each
+    item's share of x.mean() times n_items (rows of `block`, joint | beam | point, along row_dim), whose mean is
+    x.mean()."""
+    if item_power == 1:
+        return lambda x, block, row_dim: x.mean()
+    n = len(batch)
+    owner = {"joint": np.repeat(np.arange(n), np.diff(batch.joint_offsets)),
+             "beam": np.repeat(np.arange(n), np.diff(batch.beam_offsets))}
+    owner["point"] = point_owner(batch)
+    owner = {k: torch.as_tensor(v, dtype=torch.long) for k, v in owner.items()}
+
+    def reduce(x: torch.Tensor, block: str, row_dim: int) -> torch.Tensor:
+        rows = x.movedim(row_dim, 0).reshape(x.shape[row_dim], -1).sum(1)  # [R] each row's sum
+        return torch.zeros(n, dtype=rows.dtype).index_add(0, owner[block], rows) * (n / x.numel())
+    return reduce
 
 
 def point_owner(batch: GraphSet) -> np.ndarray:

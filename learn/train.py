@@ -21,7 +21,8 @@ from learn.dataset import (GraphSet, TurnedSet, augment, augment_angles, episode
                            extra_dirs_checked, load_features, split_missing_checked, split_names)
 from learn.features import EpisodeFeatures
 from learn.gn import dropout_checked, fraction_checked
-from learn.metrics import multistep_loss, noise_placement_checked, noise_shape_checked, rollout_errors
+from learn.metrics import (ITEM_POWER_RANGE, multistep_loss, noise_placement_checked, noise_shape_checked,
+                           rollout_errors)
 from learn.model import (Simulator, passes_checked, rollout_lattice_turns_checked,
                          rollout_rotations_checked, term_retention)
 from learn.stiffness import beam_middle_checked
@@ -239,6 +240,7 @@ def run_options_checked(cfg: DictConfig) -> None:
     """The run's counts, rates and the monitor (conf/train.yaml, conf/optim/), each refused with its key and range
     before any data are read: a bad one would otherwise stop the run an epoch in (monitor), be read as something
     else (a negative noise_std or batch_size as none) or train with a negative loss weight (stress_weight)."""
+    item_power_checked(cfg)
     integer_in(cfg.epochs, "epochs", 0, 10**6, "passes over the augmented training set; 0 = the run prepared "
                "(split, PCA, normalisers, start weights) without one")
     if cfg.batch_size is not None:
@@ -267,13 +269,19 @@ def training_loss(model: Simulator, batch: GraphSet, cfg: DictConfig, generator:
     `teacher_weight`, the one-step loss from every FEA frame (teacher forcing), which holds each step to the FEA's
     next state, where the rollout loss alone lets the steps trade their errors (docs/learned_simulator.md,
     session 18)."""
-    terms = loss_terms(cfg)
+    terms = {**loss_terms(cfg), "item_power": item_power_checked(cfg)}  # the power: training's alone (val_loss: 1)
     loss = multistep_loss(model, batch, cfg.rollout_horizon, cfg.noise_std, cfg.stress_weight, generator,
                           carry=gradient_carry(cfg), **terms)
     teacher = weight_checked(cfg, "teacher_weight", "no one-step term")
     if teacher > 0:
         loss = loss + teacher * multistep_loss(model, batch, 1, cfg.noise_std, cfg.stress_weight, generator, **terms)
     return loss
+
+
+def item_power_checked(cfg: DictConfig) -> float:
+    """conf/train.yaml item_power: the power mean of the batch items' losses, in ITEM_POWER_RANGE."""
+    return number_in(cfg.get("item_power", 1.0), "item_power", *ITEM_POWER_RANGE,
+                     "1 = the plain mean over a batch's items; > 1 weighs the worst-answered items more")
 
 
 def train_epoch(model: Simulator, opt: torch.optim.Optimizer, train_set: GraphSet, cfg: DictConfig,

@@ -779,6 +779,36 @@ def test_the_final_weight_adds_the_final_frames_error_of_the_unroll_that_reaches
     torch.testing.assert_close(weighted, plain + 2.0 * final)
 
 
+@pytest.mark.parametrize("terms", [{}, {"geometry": "both", "point_weight": 0.03, "final_weight": 0.2}])
+def test_item_power_is_the_power_mean_of_each_items_own_loss_and_one_is_the_plain_loss(terms):
+    """item_power p: (mean_i L_i^p)^(1/p), L_i the loss of item i alone (here: a batch of that one item, whose items
+    are equally large, so its share times the item count is its own loss); p = 1 is the loss as before, to the bit."""
+    from learn.metrics import multistep_loss
+    items = [extract(synthetic_episode(3, 3, 5, 3, 3, 4, seed=s)) for s in range(3)]
+    data = GraphSet.build(items)
+    model = Simulator.fit({"core": "double_gn", "latent": 8, "widths": [16]}, data.joint_state, data.beam_state,
+                          data.static)
+    with torch.no_grad():
+        plain = multistep_loss(model, data, 2, 0.0, 0.1, **terms)
+        one = multistep_loss(model, data, 2, 0.0, 0.1, item_power=1.0, **terms)
+        alone = torch.stack([multistep_loss(model, GraphSet.build([f]), 2, 0.0, 0.1, **terms) for f in items])
+        p3 = multistep_loss(model, data, 2, 0.0, 0.1, item_power=3.0, **terms)
+    assert torch.equal(plain, one)
+    assert len(set(alone.tolist())) == 3  # the items differ, so the power mean is not the mean
+    torch.testing.assert_close(alone.mean(), plain)  # each item's share is its own loss (chord_weight aside: its
+    # std is the batch's, so an item alone is measured by another one)
+    torch.testing.assert_close(p3, alone.pow(3).mean().pow(1 / 3))
+    assert p3 > plain
+
+
+def test_a_run_with_item_power_trains_through_every_loss_term(data_dir, tmp_path):
+    run = tmp_path / "p4"
+    summary = train(cfg_for("train", tiny(data_dir, run, "epochs=2", "item_power=4", "optim.lr=3e-3", "chord_weight=0.5",
+                                          "teacher_weight=0.5", "final_weight=0.2")))  # every term reduced per item
+    assert math.isfinite(summary["best_val_loss"])
+    assert checkpoint.load(run / "last.pt")["config"]["item_power"] == 4
+
+
 def test_an_unknown_loss_geometry_is_refused(data_dir, tmp_path):
     with pytest.raises(ValueError, match="loss geometry='mesh': must be columns | points"):
         train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=1", "loss_geometry=mesh")))
@@ -811,7 +841,8 @@ def test_an_unknown_loss_geometry_is_refused(data_dir, tmp_path):
                                               r"optim.lr_drop_factor=2: must be a number in \(0, 1\]"),
                                              ("optim.lr_drop_at=1.5", r"optim.lr_drop_at=1.5: must be a number in \[0, 1\]"),
                                              ("optim.grad_clip=-1", r"optim.grad_clip=-1: must be a number >= 0 "),
-                                             ("time_limit_min=0", r"time_limit_min=0: must be a number > 0 ")])
+                                             ("time_limit_min=0", r"time_limit_min=0: must be a number > 0 "),
+                                             ("item_power=0.5", r"item_power=0.5: must be a number in \[1, 16\]")])
 def test_a_bad_training_option_is_refused_naming_it(data_dir, tmp_path, option, message):
     with pytest.raises(ValueError, match=message):
         train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=1", *option.split())))
