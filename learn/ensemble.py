@@ -67,7 +67,7 @@ def checkpoint_paths(value) -> list[str]:
     paths = [str(v) for v in ([value] if isinstance(value, (str, Path)) else value)]
     if not paths or not all(paths):
         raise ValueError(f"checkpoint={value!r}: give one checkpoint path or a list of them (an ensemble)")
-    return [m for p in paths for m in (publish.members(p) if publish.is_published(p) else [p])]
+    return [m for p in paths for m in (publish.members(p) if Path(p).is_dir() else [p])]
 
 
 def load(paths: list[str | Path]) -> tuple[Simulator | Ensemble, dict]:

@@ -57,6 +57,9 @@ def members(directory: str | Path) -> list[str]:
     """The member files of a published model, in the card's order, each checked against its sha256: a file changed
     after publishing is refused by name, never answered with."""
     directory = Path(directory)
+    if not is_published(directory):
+        raise FileNotFoundError(f"{directory}: not a published model (no {CARD}); give a checkpoint file or a "
+                                "models/<name> written by learn.publish")
     card = json.loads((directory / CARD).read_text())
     paths = []
     for m in card.get("members", []):
@@ -76,7 +79,7 @@ def members(directory: str | Path) -> list[str]:
 def one_checkpoint(value: str | Path, key: str) -> str:
     """A conf key that names one model (init_from, split_from, diagnose's checkpoint): a path, or a published
     models/<name> of one member; a published ensemble is refused naming its member files."""
-    if not is_published(value):
+    if not Path(value).is_dir():
         return str(value)
     paths = members(value)
     if len(paths) != 1:

@@ -98,6 +98,10 @@ def test_a_member_changed_after_publishing_is_refused_by_name(members, tmp_path)
     (target / "member_0.pt").unlink()
     with pytest.raises(FileNotFoundError, match="member_0.pt listed in card.json is missing"):
         ensemble.checkpoint_paths(str(target))
+    (target / "card.json").unlink()  # a directory, but not a published model
+    for read in (ensemble.checkpoint_paths, lambda p: publish.one_checkpoint(p, "init_from")):
+        with pytest.raises(FileNotFoundError, match="one: not a published model .no card.json."):
+            read(str(target))
 
 
 @pytest.mark.parametrize("kwargs, error, message", [
