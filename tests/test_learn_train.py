@@ -541,9 +541,13 @@ def test_train_extra_dirs_add_training_designs_after_the_cut_and_resume_with_the
     assert split == {"train": ["ep000.h5", "ep200.h5"], "val": ["ep001.h5"], "test": ["ep003.h5"]}
     summary = train(cfg_for("train", tiny(data_dir, tmp_path / "run", *args)))  # resumes: reads the extra again
     assert summary["epochs_run"] == 2 and checkpoint.load(tmp_path / "run" / "last.pt")["split"] == split
-    # the checkpoint's training designs are found where they were read: data_dir and the extra directory
+    # the checkpoint's training designs are found where they were read: data_dir and the extra directory. This
+    # two-epoch model amplifies round-off x3-20 a step (session 53's machine: its eager rollout of ep000 on 1 and on 2
+    # threads differs by 0.010 mm at frame 10, over the 1e-4 x 78 mm the compiled check allows), so the check of the
+    # compiled rollout against eager, which is not what this test is about, may flag both designs here
     report = evaluate(cfg_for("evaluate", [f"checkpoint={tmp_path / 'run' / 'best.pt'}", "split=train",
-                                           f"out_dir={tmp_path / 'ev'}", "timing_repeats=1", "plots=false"]))
+                                           f"out_dir={tmp_path / 'ev'}", "timing_repeats=1", "plots=false",
+                                           "compiled_departures=1"]))
     assert sorted(d["name"] for d in report["designs"]) == ["ep000.h5", "ep200.h5"]
     from learn.diagnose import diagnose
     found = diagnose(cfg_for("diagnose", [f"checkpoint={tmp_path / 'run' / 'best.pt'}", "splits=[train]",
