@@ -6,7 +6,9 @@ report=reports/s52_ft5_pair/102` (conf/publish.yaml; `make publish`) writes mode
 - member_0.pt, member_1.pt: what answers (weights, PCA, normalisers, model args) and what it was trained with (config,
   split, envelope, history); the optimiser's moments and a weight average's raw weights, which only resuming reads,
   are left out. Still loadable with torch.load(weights_only=True), still a start for `init_from`.
-- card.json: each member's sha256 and bytes, its training data and start, and the figures of the named evaluation.
+- card.json: each member's sha256 and bytes, its training data and start, and the figures of the named evaluation;
+- report.json: that evaluation's report, every design in it, so that a later model is compared with this one design
+  by design (learn.compare 'reports=[models/<name>/report.json,...]') on a machine that never evaluated it.
 
 runs/ live on the machine that trained them; a fresh machine has none, and every result they carried was lost with
 them ten times (sessions 21-53). A committed directory is not. Wherever a checkpoint is read
@@ -34,6 +36,7 @@ from learn import checkpoint
 
 log = logging.getLogger(__name__)
 CARD = "card.json"
+REPORT = "report.json"  # the named evaluation's report, copied beside the card: learn.compare reads it design by design
 NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
 # what only resuming a training reads: the optimiser's moments, a weight average's raw weights, the patience count
 RESUME_ONLY = ("optimizer", "trained_state_dict", "n_averaged", "bad_epochs")
@@ -117,7 +120,7 @@ def report_entry(path: str | Path, sources: list[str]) -> dict:
     if [Path(p).resolve() for p in measured] != [Path(p).resolve() for p in sources]:
         raise ValueError(f"report={path}: measured with {measured}, not with checkpoints={sources}: a card carries "
                          "the figures of its own model only")
-    out = {"source": str(path), **{k: report.get(k) for k in REPORT_FIGURES}}
+    out = {"source": str(path), "file": REPORT, **{k: report.get(k) for k in REPORT_FIGURES}}
     for key in ("max_rel_error", "mean_rel_error"):
         dist = report.get(key) or {}
         out[key] = {k: dist.get(k) for k in ("median", "p95", "worst", "n", "per_family", "per_actuators")}
@@ -158,6 +161,9 @@ def publish(sources: list[str], name: str, out_dir: str | Path = "models", repor
                     "predict": f"make predict DESIGN=my_design.json CKPT={target}",
                     "init_from": [f"{target}/{e['file']}" for e in entries]},
         }
+        if report is not None:
+            from learn.combine import read_report
+            atomic.write_text(tmp / REPORT, json.dumps(read_report(report), indent=1))
         atomic.write_text(tmp / CARD, json.dumps(card, indent=1, allow_nan=False))
         if target.exists():
             shutil.rmtree(target)

@@ -69,6 +69,9 @@ def test_the_card_carries_the_figures_of_the_report_measured_with_exactly_its_me
     assert card["report"]["max_rel_error"]["per_family"] == on_disk["max_rel_error"]["per_family"]
     assert card["report"]["n_designs"] == on_disk["n_designs"] and card["report"]["speedup"] == on_disk["speedup"]
     assert [m["sha256"] for m in card["members"]] == [publish.sha256(p) for p in paths]  # byte for byte the same
+    kept = json.loads((again / card["report"]["file"]).read_text())  # the whole report, for learn.compare later
+    assert [d["name"] for d in kept["designs"]] == [d["name"] for d in on_disk["designs"]]
+    assert not (target / "report.json").exists()  # none named, none kept
     with pytest.raises(ValueError, match="measured with .* not with checkpoints"):
         publish.publish(paths[:1], "only_one", tmp_path, report=report_dir)
     assert not (tmp_path / "only_one").exists()
