@@ -110,11 +110,8 @@ def member_entry(source: str, ckpt: dict, file: Path, n_parameters: int) -> dict
     }
 
 
-def report_entry(path: str | Path, sources: list[str]) -> dict:
+def report_entry(path: str | Path, report: dict, sources: list[str]) -> dict:
     """The evaluation's figures, refused unless the report was measured with exactly these checkpoints."""
-    from learn.combine import read_report  # json only; no torch work
-
-    report = read_report(path)
     measured = report.get("checkpoint")
     measured = [measured] if isinstance(measured, str) else list(measured or [])
     if [Path(p).resolve() for p in measured] != [Path(p).resolve() for p in sources]:
@@ -138,8 +135,11 @@ def publish(sources: list[str], name: str, out_dir: str | Path = "models", repor
     if target.exists() and not overwrite:
         raise FileExistsError(f"name={name}: {target} exists; choose a new name (results quote the old one) or "
                               "overwrite=true")
+    from learn.combine import read_report  # here, not at the top: learn.combine -> evaluate -> ensemble -> publish
+
     model, _ = ensemble.load(sources)  # every member loads; an ensemble's members share their held-out designs
-    figures = None if report is None else report_entry(report, sources)
+    measured = None if report is None else read_report(report)
+    figures = None if report is None else report_entry(report, measured, sources)
     tmp = Path(out_dir) / f".{name}.{secrets.token_hex(4)}{atomic.TMP_SUFFIX}"
     tmp.mkdir(parents=True)
     try:
@@ -161,9 +161,8 @@ def publish(sources: list[str], name: str, out_dir: str | Path = "models", repor
                     "predict": f"make predict DESIGN=my_design.json CKPT={target}",
                     "init_from": [f"{target}/{e['file']}" for e in entries]},
         }
-        if report is not None:
-            from learn.combine import read_report
-            atomic.write_text(tmp / REPORT, json.dumps(read_report(report), indent=1))
+        if measured is not None:
+            atomic.write_text(tmp / REPORT, json.dumps(measured, indent=1))
         atomic.write_text(tmp / CARD, json.dumps(card, indent=1, allow_nan=False))
         if target.exists():
             shutil.rmtree(target)
