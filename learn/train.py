@@ -492,9 +492,10 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
         if bad >= int(cfg.patience):
             stop_reason = f"early stop: no {cfg.monitor} improvement in {bad} epochs"
             break
-        if cfg.get("time_limit_min") and row["seconds"] > 60 * float(cfg.time_limit_min):
-            stop_reason = f"time limit {cfg.time_limit_min} min"
-            break
+        epoch_s = row["seconds"] - (history[-2]["seconds"] if len(history) > 1 else 0.0)
+        if cfg.get("time_limit_min") and row["seconds"] + epoch_s > 60 * float(cfg.time_limit_min):
+            stop_reason = f"time limit {cfg.time_limit_min} min"  # the next epoch, as long as this one, would end
+            break                                                 # past it: paused now, not killed mid-epoch
         if (epoch + 1) % int(cfg.checkpoint_every) == 0:
             save(last, epoch)
 

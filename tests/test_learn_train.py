@@ -124,6 +124,20 @@ def test_training_resumes_from_the_last_checkpoint(data_dir, tmp_path):
     assert checkpoint.load(tmp_path / "last.pt")["config"]["model"]["activation"] == "relu"
 
 
+def test_a_time_limited_run_pauses_before_an_epoch_that_would_end_past_the_limit(data_dir, tmp_path, monkeypatch):
+    """Each epoch takes 100 s on a clock of learn.train's own; at a 250 s limit the run pauses after epoch 1 (200 s
+    done, a third epoch would end at 300 s), not after epoch 2 (300 s, past the limit: a session's end would have
+    killed it mid-epoch)."""
+    import types
+    import learn.train as train_module
+    ticks = iter(range(0, 10**6, 100))
+    monkeypatch.setattr(train_module, "time", types.SimpleNamespace(perf_counter=lambda: float(next(ticks))))
+    paused = train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=4", f"time_limit_min={250 / 60}")))
+    history = checkpoint.load(tmp_path / "last.pt")["history"]
+    assert paused["stop"].startswith("time limit") and paused["epochs_run"] == 2
+    assert [round(r["seconds"]) for r in history] == [100, 200]
+
+
 def test_a_time_limited_run_pauses_and_continues_with_a_larger_limit(data_dir, tmp_path):
     first = train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=3", "time_limit_min=1e-6", "batch_size=1")))
     assert first["stop"].startswith("time limit") and first["epochs_run"] == 1
