@@ -63,3 +63,38 @@ def write_csv(path: str | os.PathLike, rows: Iterable[Mapping], fieldnames: list
         w.writeheader()
         w.writerows(rows)
     return Path(path)
+
+
+class InUse(RuntimeError):
+    """Another live process holds the lock."""
+
+
+@contextlib.contextmanager
+def held(lock: str | os.PathLike, what: str, error: type[InUse] = InUse) -> Iterator[Path]:
+    """Hold `lock`, a file holding the owner's pid, for the block: a second process that asks while the owner lives
+    gets `error` naming `what` and the owner, instead of working on the same files (a training's checkpoints, a
+    generator's episodes and the temporaries it cleans up); a lock whose process is gone is taken over."""
+    lock = Path(lock)
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    for _ in range(2):
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+            break
+        except FileExistsError:
+            try:
+                pid = int(lock.read_text().strip() or 0)
+                os.kill(pid, 0)
+            except (ValueError, ProcessLookupError, FileNotFoundError):
+                lock.unlink(missing_ok=True)  # stale: its process has ended
+                continue
+            except PermissionError:
+                pass
+            raise error(f"{what} is in use by process {pid} (remove {lock} if that is wrong)")
+    else:
+        raise error(f"{what}: could not take {lock}")
+    try:
+        os.write(fd, str(os.getpid()).encode())
+        os.close(fd)
+        yield lock
+    finally:
+        lock.unlink(missing_ok=True)

@@ -29,6 +29,8 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
+from data_schema import atomic
+
 from fea_factory.checks import integer_in
 from fea_factory.design import Design
 from fea_factory.material import make_material
@@ -171,16 +173,27 @@ def run_episode(i: int, design: Design, out: Path, cfg: DictConfig, overrides: l
     return {**record, "status": "error", "returncode": proc.returncode, "reason": tail}
 
 
+class GeneratorInUse(atomic.InUse):
+    """Another live generator works on the same shard of the same out directory."""
+
+
 def generate(cfg: DictConfig, task_overrides: list[str] | None = None) -> dict:
     """Generate the episodes of this shard; returns the summary."""
+    check_config(cfg)
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    # one generator per shard of out: a second would solve the same episodes and remove the first's temporaries
+    with atomic.held(out / f".generate.shard{cfg.shard}of{cfg.n_shards}.lock",
+                     f"out={out} (shard {cfg.shard} of {cfg.n_shards})", GeneratorInUse):
+        return _generate(cfg, out, task_overrides)
+
+
+def _generate(cfg: DictConfig, out: Path, task_overrides: list[str] | None) -> dict:
     from tqdm import tqdm
 
     from data_schema.validate import validate_episode
     from fea_factory.sample import sample_designs
 
-    check_config(cfg)
-    out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
     manifest = Manifest(out / "manifest.jsonl")
     mine = [i for i in range(int(cfg.start), int(cfg.start) + int(cfg.n)) if i % int(cfg.n_shards) == int(cfg.shard)]
     for i in mine:  # a killed writer leaves <name>.h5.<hex>.tmp behind: ours to remove
@@ -248,6 +261,9 @@ def main() -> None:
         except (ValueError, KeyError) as err:
             print(f"generate: invalid configuration: {err}", file=sys.stderr)
             sys.exit(2)
+        except GeneratorInUse as err:
+            print(f"generate: {err}", file=sys.stderr)
+            sys.exit(3)
         if summary["error"]:
             sys.exit(1)
 

@@ -1,8 +1,6 @@
 """Checkpoints: plain tensors and containers only (torch.load(weights_only=True)), written atomically."""
 from __future__ import annotations
 
-import contextlib
-import os
 from pathlib import Path
 
 import torch
@@ -20,37 +18,14 @@ def save(path: str | Path, model: Simulator, **extra) -> Path:
     return Path(path)
 
 
-class RunDirInUse(RuntimeError):
+class RunDirInUse(atomic.InUse):
     pass
 
 
-@contextlib.contextmanager
 def run_lock(run_dir: str | Path):
     """Hold run_dir/.lock (the owner's pid) while training, so a second run into the same directory stops with a
     clear error instead of interleaving checkpoints; a lock whose process is gone is taken over."""
-    lock = Path(run_dir) / ".lock"
-    for _ in range(2):
-        try:
-            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
-            break
-        except FileExistsError:
-            try:
-                pid = int(lock.read_text().strip() or 0)
-                os.kill(pid, 0)
-            except (ValueError, ProcessLookupError, FileNotFoundError):
-                lock.unlink(missing_ok=True)  # stale: its process has ended
-                continue
-            except PermissionError:
-                pass
-            raise RunDirInUse(f"run_dir {run_dir} is in use by process {pid} (remove {lock} if that is wrong)")
-    else:
-        raise RunDirInUse(f"run_dir {run_dir}: could not take {lock}")
-    try:
-        os.write(fd, str(os.getpid()).encode())
-        os.close(fd)
-        yield lock
-    finally:
-        lock.unlink(missing_ok=True)
+    return atomic.held(Path(run_dir) / ".lock", f"run_dir {run_dir}", RunDirInUse)
 
 
 def load(path: str | Path) -> dict:

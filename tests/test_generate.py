@@ -83,13 +83,18 @@ def test_kill_mid_episode_then_resume_completes_the_set(tmp_path):
     deadline = time.time() + 600
     while time.time() < deadline and len(manifest(out)) < 1:  # first episode done, second under way
         time.sleep(0.5)
+    busy = generate(out, "n=2")  # a second generator on the same shard while the first lives: refused, nothing done
+    assert busy.returncode == 3 and f"out={out} (shard 0 of 1) is in use by process {proc.pid}" in busy.stderr
     time.sleep(3.0)
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
     assert len(manifest(out)) == 1
     assert not (out / "episode_00001.h5").exists()  # nothing half-written under the final name
+    lock = out / ".generate.shard0of1.lock"
+    assert lock.read_text() == str(proc.pid)  # the killed generator's lock stays behind ...
     r = generate(out, "n=2")
     assert r.returncode == 0, r.stderr[-2000:]
+    assert not lock.exists()  # ... and the next one takes it over, and lets it go when done
     summary = json.loads(r.stdout.strip().splitlines()[-1])
     assert summary["done"] == 1 and summary["skipped"] == 1
     # a valid file whose manifest line was lost (killed between rename and append) gets a "skipped" record
