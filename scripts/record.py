@@ -8,13 +8,19 @@ re-running the same commands session after session:
 `train` runs the stages of one seed in order. A finished stage is skipped; a started one resumes from its last.pt;
 each gets a time limit that ends it before the budget of this invocation runs out (learn.train's time_limit_min counts
 a run's training minutes over all its invocations, so the limit is the minutes done plus what the budget leaves),
-and a stage that pauses stops the chain: the next stage never starts from an unfinished one. Training refuses to start
-until every episode of `data` is generated (or refused by the solver), so every seed trains on the same designs.
-`status` prints where both seeds and the data stand.
+and a stage that pauses stops the chain: the next stage never starts from an unfinished one. A stage starts only when
+its data are complete (generated or refused by the solver), so every seed trains on the same designs: by default every
+episode of `data`; a stage's `needs` ({out: n}) asks for the first n episodes of those entries only (the reference
+stage reads the first 400 of data/ds_default), so it trains on one core while the other generates the rest
+(`make record-data JOBS=1`). A stage with `keep: <file>` is published when it finishes (learn.publish, without the
+optimiser: ~7 MB) as models/<run_root's name>_s<seed>_<stage>; commit it. A later stage starts from that directory
+when the run is gone, so a fresh machine (ten times, sessions 21-53) loses the data, not the training: it
+regenerates the data and goes on from the last kept stage. `status` prints where both seeds and the data stand.
 """
 from __future__ import annotations
 
 import argparse
+import json
 import subprocess
 import sys
 import time
@@ -35,18 +41,40 @@ def conf(path: Path = CONF):
     return OmegaConf.load(path)
 
 
-def missing_episodes(entry) -> list[int]:
-    """Indices of `entry`'s range with no record of a written episode or a refusal."""
+def missing_episodes(entry, n: int | None = None) -> list[int]:
+    """Indices of `entry`'s range (its first `n` only, if given) with no record of a written episode or a refusal."""
     done = Manifest(ROOT / entry.out / "manifest.jsonl").episodes_with_status("ok", *REFUSALS)
-    return sorted(set(range(int(entry.start), int(entry.start) + int(entry.n))) - done)
+    return sorted(set(range(int(entry.start), int(entry.start) + int(entry.n if n is None else n))) - done)
 
 
-def stage_state(run_dir: Path) -> tuple[str, float]:
-    """('finished' | 'paused' | 'new', minutes of training done) of one stage's run."""
+def needs(cfg, stage) -> dict[str, int]:
+    """{data out: how many of its first episodes} the stage trains on: its `needs`, or every episode of `data`."""
+    entries = {e.out: int(e.n) for e in cfg.data}
+    asked = dict(stage.get("needs") or entries)
+    for out, n in asked.items():
+        if out not in entries:
+            raise ValueError(f"stage {stage.name}: needs {out!r}, which is not one of data's outs {sorted(entries)}")
+        if not 1 <= int(n) <= entries[out]:
+            raise ValueError(f"stage {stage.name}: needs {out}: {n}; must be 1..{entries[out]} (its data entry's n)")
+    return {out: int(n) for out, n in asked.items()}
+
+
+def data_short(cfg, stage) -> dict[str, int]:
+    """{data out: episodes still missing} of what the stage needs; empty when it may start."""
+    by_out = {e.out: e for e in cfg.data}
+    return {out: k for out, n in needs(cfg, stage).items() if (k := len(missing_episodes(by_out[out], n)))}
+
+
+def stage_state(run_dir: Path, kept: Path | None = None) -> tuple[str, float]:
+    """('finished' | 'paused' | 'new' | 'kept', minutes of training done) of one stage's run; 'kept': no run on this
+    machine, but the stage's published directory `kept` (a finished stage, as good as one for what follows)."""
     import torch
 
     last = ROOT / run_dir / "last.pt"
     if not last.exists():
+        if kept is not None and (ROOT / kept / "card.json").is_file():
+            card = json.loads((ROOT / kept / "card.json").read_text())
+            return "kept", float(card["members"][0].get("training_seconds") or 0.0) / 60
         return "new", 0.0
     ckpt = torch.load(last, map_location="cpu", weights_only=True)
     minutes = float((ckpt.get("history") or [{}])[-1].get("seconds", 0.0)) / 60
@@ -56,6 +84,40 @@ def stage_state(run_dir: Path) -> tuple[str, float]:
 def run_dir(cfg, seed: int, name: str) -> Path:
     """Relative to the repository (the commands run there; checkpoints record the paths they were given)."""
     return Path(f"{cfg.run_root}_s{seed}") / name
+
+
+def kept_dir(cfg, seed: int, stage) -> Path | None:
+    """Where a stage with `keep` is published (models/record_s0_ref18); None for a stage that is not kept."""
+    if not stage.get("keep"):
+        return None
+    return Path(cfg.get("keep_dir", "models")) / f"{Path(str(cfg.run_root)).name}_s{seed}_{stage.name}"
+
+
+def state(cfg, seed: int, stage) -> tuple[str, float]:
+    return stage_state(run_dir(cfg, seed, stage.name), kept_dir(cfg, seed, stage))
+
+
+def start_of(cfg, seed: int, source: str) -> Path:
+    """A stage's `from` ('ref18/best.pt'): that run's file, or when the run is gone, the stage's kept directory
+    (published from that same file)."""
+    name, _, file = source.partition("/")
+    path = run_dir(cfg, seed, name) / file
+    stage = next(s for s in cfg.stages if s.name == name)
+    kept = kept_dir(cfg, seed, stage)
+    if not (ROOT / path).exists() and kept is not None and stage.keep == file and (ROOT / kept / "card.json").is_file():
+        return kept
+    return path
+
+
+def keep(cfg, seed: int, stage) -> None:
+    """Publish a finished stage's `keep` file as its kept directory, once (learn.publish: without the optimiser)."""
+    kept = kept_dir(cfg, seed, stage)
+    if kept is None or (ROOT / kept).exists():
+        return
+    from learn.publish import publish
+
+    publish([str(ROOT / run_dir(cfg, seed, stage.name) / stage.keep)], kept.name, out_dir=ROOT / kept.parent)
+    print(f"[record] seed {seed} {stage.name}: kept as {kept}: commit it (git add {kept})", flush=True)
 
 
 def data(cfg, jobs: int) -> int:
@@ -71,30 +133,45 @@ def data(cfg, jobs: int) -> int:
 
 def train(cfg, seed: int, budget_min: float) -> int:
     deadline = time.monotonic() + 60 * budget_min
-    short = {e.out: len(m) for e in cfg.data if (m := missing_episodes(e))}
-    if short:
-        print(f"[record] data not complete: {', '.join(f'{k} lacks {v}' for k, v in short.items())} episodes; "
-              "run make record-data first", file=sys.stderr)
-        return 2
+    for stage in cfg.stages:
+        needs(cfg, stage)  # a bad `needs` or `from` refused before anything runs
+        if stage["from"] is not None and stage["from"].partition("/")[0] not in [s.name for s in cfg.stages]:
+            raise ValueError(f"stage {stage.name}: from {stage['from']!r} names no stage of {[s.name for s in cfg.stages]}")
+        if stage["from"] is not None:
+            name, _, file = stage["from"].partition("/")
+            source = next(s for s in cfg.stages if s.name == name)
+            if source.get("keep") and source.keep != file:
+                raise ValueError(f"stage {stage.name}: from {stage['from']!r}, but stage {name} keeps {source.keep!r}: "
+                                 "keep the file the next stage starts from")
     for stage in cfg.stages:
         rd = run_dir(cfg, seed, stage.name)
-        state, done = stage_state(rd)
-        if state == "finished":
-            print(f"[record] seed {seed} {stage.name}: finished ({done:.0f} min)", flush=True)
+        now, done = state(cfg, seed, stage)
+        if now in ("finished", "kept"):
+            print(f"[record] seed {seed} {stage.name}: {now} ({done:.0f} min)", flush=True)
+            if now == "finished":
+                keep(cfg, seed, stage)
             continue
+        short = data_short(cfg, stage)
+        if short:
+            print(f"[record] seed {seed} {stage.name}: its data are not complete: "
+                  f"{', '.join(f'{k} lacks {v}' for k, v in short.items())} episodes; run make record-data first",
+                  file=sys.stderr)
+            return 2
         left = (deadline - time.monotonic()) / 60
         if left < MIN_STAGE_MIN:
             print(f"[record] seed {seed}: budget spent before {stage.name}; run the same command again to go on")
             return 3
-        start = [] if stage["from"] is None else [f"init_from={run_dir(cfg, seed, stage['from'])}"]
+        start = [] if stage["from"] is None else [f"init_from={start_of(cfg, seed, stage['from'])}"]
         cmd = [sys.executable, "-m", "learn.train", *stage.args, *start, f"seed={seed}", f"run_dir={rd}",
                f"time_limit_min={done + left:.1f}"]
-        print(f"[record] seed {seed} {stage.name} ({state}, {done:.0f} min done):", " ".join(cmd), flush=True)
+        print(f"[record] seed {seed} {stage.name} ({now}, {done:.0f} min done):", " ".join(cmd), flush=True)
         rc = subprocess.call(cmd, cwd=ROOT)
         if rc:
             return rc
-        state, done = stage_state(rd)
-        if state != "finished":
+        now, done = state(cfg, seed, stage)
+        if now == "finished":
+            keep(cfg, seed, stage)
+        else:
             print(f"[record] seed {seed} {stage.name} paused at {done:.0f} min (budget); run the same command again "
                   "to go on")
             return 3
@@ -129,7 +206,11 @@ def status(cfg) -> int:
         print(f"{e.out}: {int(e.n) - len(missing_episodes(e))} of {e.n} episodes done")
     for seed in cfg.seeds:
         print(f"seed {seed}: " + ", ".join(f"{s.name} {st} ({m:.0f} min)" for s in cfg.stages
-                                          for st, m in [stage_state(run_dir(cfg, seed, s.name))]))
+                                          for st, m in [state(cfg, seed, s)]))
+    for s in cfg.stages:
+        short = data_short(cfg, s)
+        print(f"stage {s.name}: " + ("its data are complete" if not short else "waits for " + ", ".join(
+            f"{k} ({v} missing of its first {needs(cfg, s)[k]})" for k, v in short.items())))
     return 0
 
 

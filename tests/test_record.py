@@ -106,3 +106,63 @@ def test_without_a_seed_every_seed_trains_side_by_side_each_into_its_own_log(cha
         assert torch.load(runs / f"rec_s{seed}" / "b" / "last.pt", weights_only=True)["finished"]
         assert f"seed {seed}: every stage finished" in out
         assert "every stage finished" in (tmp_path / "logs" / f"record_s{seed}.log").read_text()
+
+
+def test_a_stage_waits_only_for_the_data_it_needs(chain, capsys):
+    path, runs = chain
+    cfg = OmegaConf.load(path)
+    cfg.data[0].n = 6  # two episodes past the four the first stage reads are not generated yet
+    cfg.stages[0].needs = {cfg.data[0].out: 4}
+    partial = path.with_name("partial.yaml")
+    OmegaConf.save(cfg, partial)
+    assert record.main(["train", "--seed", "0", "--conf", str(partial), "--budget-min", "30"]) == 2
+    assert torch.load(runs / "rec_s0" / "a" / "last.pt", weights_only=True)["finished"]  # a ran, b waits
+    assert not (runs / "rec_s0" / "b").exists()
+    assert "b: its data are not complete" in capsys.readouterr().err
+    assert record.main(["status", "--conf", str(partial)]) == 0
+    out = capsys.readouterr().out
+    assert "stage a: its data are complete" in out and "stage b: waits for" in out and "2 missing of its first 6" in out
+    for bad in ({"elsewhere": 2}, {cfg.data[0].out: 7}, {cfg.data[0].out: 0}):
+        cfg.stages[0].needs = bad
+        OmegaConf.save(cfg, partial)
+        with pytest.raises(ValueError, match="stage a: needs"):
+            record.main(["train", "--seed", "0", "--conf", str(partial)])
+
+
+def test_the_record_reference_stage_needs_only_the_episodes_its_training_designs_come_from():
+    cfg = record.conf()
+    ref = cfg.stages[0]
+    train = cfg_for("train", list(ref.args))
+    assert dict(ref.needs) == {train.data_dir: 400} and train.train_designs == 348
+    held = OmegaConf.load(REPO / train.split_from)  # its 52 held-out designs are among the 400 too
+    assert len(held.val) + len(held.test) == 400 - 348
+    assert all(int(n.split("_")[1].split(".")[0]) < 400 for n in [*held.val, *held.test])
+
+
+def test_a_kept_stage_is_published_when_it_finishes_and_the_next_starts_from_it_once_the_run_is_gone(chain, capsys):
+    import shutil
+
+    path, runs = chain
+    cfg = OmegaConf.load(path)
+    cfg.stages[0].keep = "last.pt"
+    cfg.keep_dir = str(runs.parent / "models")
+    kept_conf = path.with_name("kept.yaml")
+    OmegaConf.save(cfg, kept_conf)
+    assert record.main(["train", "--seed", "0", "--conf", str(kept_conf), "--budget-min", "30"]) == 0
+    kept = runs.parent / "models" / "rec_s0_a"
+    card = json.loads((kept / "card.json").read_text())
+    assert card["members"][0]["source"].endswith("rec_s0/a/last.pt") and "optimizer" not in torch.load(
+        kept / "member_0.pt", weights_only=True)
+    assert not (runs.parent / "models" / "rec_s0_b").exists()  # b has no keep
+    assert "kept as" in capsys.readouterr().out
+    shutil.rmtree(runs)  # a fresh machine: the runs are gone, the committed directory is not
+    assert record.main(["status", "--conf", str(kept_conf)]) == 0
+    out = capsys.readouterr().out
+    assert "a kept" in out and "b new" in out
+    assert record.main(["train", "--seed", "0", "--conf", str(kept_conf), "--budget-min", "30"]) == 0
+    b = torch.load(runs / "rec_s0" / "b" / "last.pt", weights_only=True)
+    assert b["finished"] and b["config"]["init_from"] == str(kept) and not (runs / "rec_s0" / "a").exists()
+    cfg.stages[0].keep = "best.pt"  # b starts from a/last.pt: keeping another file would not carry it on
+    OmegaConf.save(cfg, kept_conf)
+    with pytest.raises(ValueError, match="keep the file the next stage starts from"):
+        record.main(["train", "--seed", "0", "--conf", str(kept_conf)])
