@@ -83,10 +83,10 @@ publish:  ## keep a trained model in the repository: CKPT (or CKPT='[a.pt,b.pt]'
 record-data:  ## every episode the record chain trains and is evaluated on (conf/record.yaml: ds_heldout 50, ds_default 800, ds_large 300, ds_val 100); JOBS=2; resumable
 	$(PY) scripts/record.py data --jobs $(JOBS)
 
-record:  ## the record model rebuilt on a fresh machine (conf/record.yaml): every seed's stages in order, side by side (one core each; SEED=k: one alone), each resumable, for at most BUDGET_MIN minutes (150; logs/record_s<k>.log); again each session until finished
+record:  ## the record model rebuilt on a fresh machine (conf/record.yaml): every seed's stages in order, side by side (one core each; SEED=k: one alone), each resumable and started once the data it needs exist, for at most BUDGET_MIN minutes (150; logs/record_s<k>.log); again each session until finished; kept stages land in models/record_s<k>_<stage> (commit them)
 	$(PY) scripts/record.py train $(if $(SEED),--seed $(SEED)) --budget-min $(or $(BUDGET_MIN),150)
 
-record-status:  ## where the record chain stands: episodes generated, each seed's stages
+record-status:  ## where the record chain stands: episodes generated, each seed's stages (new / paused / finished / kept), which stages' data are complete
 	$(PY) scripts/record.py status
 
 record-evaluate:  ## the record pair (each seed's last stage) on the 102 held-out designs -> reports/record/102, then published as models/record_pair (commit it)
