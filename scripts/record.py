@@ -33,8 +33,10 @@ from omegaconf import OmegaConf  # noqa: E402
 from fea_factory.generate import REFUSALS, Manifest  # noqa: E402
 
 CONF = ROOT / "conf" / "record.yaml"
-MIN_STAGE_MIN = 5.0
-OUTCOMES = {0: "every stage finished", 3: "paused (budget): run the same command again to go on"}  # a stage is not started with less than this left of the budget
+MIN_STAGE_MIN = 5.0  # a stage is not started with less than this left of the budget
+WAITS = 4  # exit code: the next stage's data are not complete (not a failure: generate them, then the same command)
+OUTCOMES = {0: "every stage finished", 3: "paused (budget): run the same command again to go on",
+            WAITS: "waits for data: make record-data, then the same command again"}
 
 
 def conf(path: Path = CONF):
@@ -156,7 +158,7 @@ def train(cfg, seed: int, budget_min: float) -> int:
             print(f"[record] seed {seed} {stage.name}: its data are not complete: "
                   f"{', '.join(f'{k} lacks {v}' for k, v in short.items())} episodes; run make record-data first",
                   file=sys.stderr)
-            return 2
+            return WAITS
         left = (deadline - time.monotonic()) / 60
         if left < MIN_STAGE_MIN:
             print(f"[record] seed {seed}: budget spent before {stage.name}; run the same command again to go on")

@@ -84,7 +84,7 @@ def test_no_stage_starts_without_its_data_or_its_budget_nor_from_an_unfinished_o
     cfg.data[0].n = 6  # two episodes not generated yet
     short = path.with_name("short.yaml")
     OmegaConf.save(cfg, short)
-    assert record.main(["train", "--seed", "0", "--conf", str(short)]) == 2 and not runs.exists()
+    assert record.main(["train", "--seed", "0", "--conf", str(short)]) == record.WAITS and not runs.exists()
     assert "lacks 2 episodes; run make record-data" in capsys.readouterr().err
     assert record.main(["train", "--seed", "0", "--conf", str(path), "--budget-min", "0.01"]) == 3 and not runs.exists()
     paused = runs / "rec_s0" / "a"  # a first stage stopped by its time limit
@@ -115,10 +115,14 @@ def test_a_stage_waits_only_for_the_data_it_needs(chain, capsys):
     cfg.stages[0].needs = {cfg.data[0].out: 4}
     partial = path.with_name("partial.yaml")
     OmegaConf.save(cfg, partial)
-    assert record.main(["train", "--seed", "0", "--conf", str(partial), "--budget-min", "30"]) == 2
+    assert record.main(["train", "--seed", "0", "--conf", str(partial), "--budget-min", "30"]) == record.WAITS
     assert torch.load(runs / "rec_s0" / "a" / "last.pt", weights_only=True)["finished"]  # a ran, b waits
     assert not (runs / "rec_s0" / "b").exists()
     assert "b: its data are not complete" in capsys.readouterr().err
+    log_dir = path.parent / "logs"  # side by side: waiting for data is an outcome, not a failure
+    assert record.main(["train", "--conf", str(partial), "--log-dir", str(log_dir)]) == record.WAITS
+    assert capsys.readouterr().out.count("waits for data: make record-data") == 2
+    assert "lacks 2 episodes" in (log_dir / "record_s1.log").read_text()
     assert record.main(["status", "--conf", str(partial)]) == 0
     out = capsys.readouterr().out
     assert "stage a: its data are complete" in out and "stage b: waits for" in out and "2 missing of its first 6" in out
