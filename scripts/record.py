@@ -116,9 +116,10 @@ def keep(cfg, seed: int, stage) -> None:
     kept = kept_dir(cfg, seed, stage)
     if kept is None or (ROOT / kept).exists():
         return
-    from learn.publish import publish
-
-    publish([str(ROOT / run_dir(cfg, seed, stage.name) / stage.keep)], kept.name, out_dir=ROOT / kept.parent)
+    cmd = [sys.executable, "-m", "learn.publish", f"checkpoints={run_dir(cfg, seed, stage.name) / stage.keep}",
+           f"name={kept.name}", f"out_dir={kept.parent}"]  # run in the repository: the card's paths are relative
+    print("[record]", " ".join(cmd), flush=True)
+    subprocess.run(cmd, cwd=ROOT, check=True)
     print(f"[record] seed {seed} {stage.name}: kept as {kept}: commit it (git add {kept})", flush=True)
 
 
