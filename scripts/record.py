@@ -204,12 +204,24 @@ def members(cfg) -> list[str]:
     return [str(run_dir(cfg, s, cfg.stages[-1].name) / "last.pt") for s in cfg.seeds]
 
 
+def epochs_done(run_dir: Path) -> str:
+    """'epoch 8 of 18' for a started run (its last.pt), '' for none."""
+    import torch
+
+    last = ROOT / run_dir / "last.pt"
+    if not last.exists():
+        return ""
+    ckpt = torch.load(last, map_location="cpu", weights_only=True)
+    return f"epoch {len(ckpt.get('history') or [])} of {(ckpt.get('config') or {}).get('epochs')}, "
+
+
 def status(cfg) -> int:
     for e in cfg.data:
         print(f"{e.out}: {int(e.n) - len(missing_episodes(e))} of {e.n} episodes done")
     for seed in cfg.seeds:
-        print(f"seed {seed}: " + ", ".join(f"{s.name} {st} ({m:.0f} min)" for s in cfg.stages
-                                          for st, m in [state(cfg, seed, s)]))
+        print(f"seed {seed}: " + ", ".join(
+            f"{s.name} {st} ({epochs_done(run_dir(cfg, seed, s.name)) if st == 'paused' else ''}{m:.0f} min)"
+            for s in cfg.stages for st, m in [state(cfg, seed, s)]))
     for s in cfg.stages:
         short = data_short(cfg, s)
         print(f"stage {s.name}: " + ("its data are complete" if not short else "waits for " + ", ".join(

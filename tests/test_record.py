@@ -92,6 +92,9 @@ def test_no_stage_starts_without_its_data_or_its_budget_nor_from_an_unfinished_o
     ckpt = torch.load(paused / "last.pt", weights_only=True)
     torch.save({**ckpt, "finished": False}, paused / "last.pt")
     assert record.stage_state(paused)[0] == "paused"
+    capsys.readouterr()
+    assert record.main(["status", "--conf", str(path)]) == 0
+    assert "a paused (epoch 1 of 1, " in capsys.readouterr().out  # epochs done of the run's epochs
     assert record.main(["train", "--seed", "0", "--conf", str(path), "--budget-min", "0.01"]) == 3  # resumes nothing, starts nothing
     assert "budget spent before a" in capsys.readouterr().out
     with pytest.raises(SystemExit):
