@@ -31,6 +31,7 @@ sys.path.insert(0, str(ROOT))
 from omegaconf import OmegaConf  # noqa: E402
 
 from fea_factory.generate import REFUSALS, Manifest  # noqa: E402
+from learn.publish import CARD, is_published  # noqa: E402
 
 CONF = ROOT / "conf" / "record.yaml"
 MIN_STAGE_MIN = 5.0  # a stage is not started with less than this left of the budget
@@ -74,8 +75,8 @@ def stage_state(run_dir: Path, kept: Path | None = None) -> tuple[str, float]:
 
     last = ROOT / run_dir / "last.pt"
     if not last.exists():
-        if kept is not None and (ROOT / kept / "card.json").is_file():
-            card = json.loads((ROOT / kept / "card.json").read_text())
+        if kept is not None and is_published(ROOT / kept):
+            card = json.loads((ROOT / kept / CARD).read_text())
             return "kept", float(card["members"][0].get("training_seconds") or 0.0) / 60
         return "new", 0.0
     ckpt = torch.load(last, map_location="cpu", weights_only=True)
@@ -99,14 +100,26 @@ def state(cfg, seed: int, stage) -> tuple[str, float]:
     return stage_state(run_dir(cfg, seed, stage.name), kept_dir(cfg, seed, stage))
 
 
+def source_of(cfg, source: str):
+    """(the stage, the file) a `from` ('ref18/best.pt') names; a name of no stage, or a kept stage whose kept file
+    is not this one (it would not carry the chain on), refused."""
+    name, _, file = source.partition("/")
+    stage = next((s for s in cfg.stages if s.name == name), None)
+    if stage is None:
+        raise ValueError(f"from {source!r} names no stage of {[s.name for s in cfg.stages]}")
+    if stage.get("keep") and stage.keep != file:
+        raise ValueError(f"from {source!r}, but stage {name} keeps {stage.keep!r}: keep the file the next stage "
+                         "starts from")
+    return stage, file
+
+
 def start_of(cfg, seed: int, source: str) -> Path:
     """A stage's `from` ('ref18/best.pt'): that run's file, or when the run is gone, the stage's kept directory
     (published from that same file)."""
-    name, _, file = source.partition("/")
-    path = run_dir(cfg, seed, name) / file
-    stage = next(s for s in cfg.stages if s.name == name)
+    stage, file = source_of(cfg, source)
+    path = run_dir(cfg, seed, stage.name) / file
     kept = kept_dir(cfg, seed, stage)
-    if not (ROOT / path).exists() and kept is not None and stage.keep == file and (ROOT / kept / "card.json").is_file():
+    if not (ROOT / path).exists() and kept is not None and stage.keep == file and is_published(ROOT / kept):
         return kept
     return path
 
@@ -138,14 +151,11 @@ def train(cfg, seed: int, budget_min: float) -> int:
     deadline = time.monotonic() + 60 * budget_min
     for stage in cfg.stages:
         needs(cfg, stage)  # a bad `needs` or `from` refused before anything runs
-        if stage["from"] is not None and stage["from"].partition("/")[0] not in [s.name for s in cfg.stages]:
-            raise ValueError(f"stage {stage.name}: from {stage['from']!r} names no stage of {[s.name for s in cfg.stages]}")
         if stage["from"] is not None:
-            name, _, file = stage["from"].partition("/")
-            source = next(s for s in cfg.stages if s.name == name)
-            if source.get("keep") and source.keep != file:
-                raise ValueError(f"stage {stage.name}: from {stage['from']!r}, but stage {name} keeps {source.keep!r}: "
-                                 "keep the file the next stage starts from")
+            try:
+                source_of(cfg, stage["from"])
+            except ValueError as e:
+                raise ValueError(f"stage {stage.name}: {e}") from None
     for stage in cfg.stages:
         rd = run_dir(cfg, seed, stage.name)
         now, done = state(cfg, seed, stage)
