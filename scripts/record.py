@@ -119,7 +119,7 @@ def start_of(cfg, seed: int, source: str) -> Path:
     stage, file = source_of(cfg, source)
     path = run_dir(cfg, seed, stage.name) / file
     kept = kept_dir(cfg, seed, stage)
-    if not (ROOT / path).exists() and kept is not None and stage.keep == file and is_published(ROOT / kept):
+    if not (ROOT / path).exists() and kept is not None and is_published(ROOT / kept):
         return kept
     return path
 
