@@ -83,8 +83,8 @@ publish:  ## keep a trained model in the repository: CKPT (or CKPT='[a.pt,b.pt]'
 record-data:  ## every episode the record chain trains and is evaluated on (conf/record.yaml: ds_heldout 50, ds_default 800, ds_large 300, ds_val 100); JOBS=2; resumable
 	$(PY) scripts/record.py data --jobs $(JOBS)
 
-record:  ## the record model rebuilt on a fresh machine (conf/record.yaml): every seed's stages in order, side by side (one core each; SEED=k: one alone), each resumable and started once the data it needs exist, for at most BUDGET_MIN minutes (150; logs/record_s<k>.log); again each session until finished; kept stages land in models/record_s<k>_<stage> (commit them)
-	$(PY) scripts/record.py train $(if $(SEED),--seed $(SEED)) --budget-min $(or $(BUDGET_MIN),150)
+record:  ## the record model rebuilt on a fresh machine (conf/record.yaml): every seed's stages in order, side by side (one core each; SEED=k: one alone), each resumable and started once the data it needs exist, for at most BUDGET_MIN minutes (150; logs/record_s<k>.log; WAIT=1: a stage waits for its data, make record-data running beside, instead of exiting 4); again each session until finished; kept stages land in models/record_s<k>_<stage> (commit them)
+	$(PY) scripts/record.py train $(if $(SEED),--seed $(SEED)) --budget-min $(or $(BUDGET_MIN),150) $(if $(WAIT),--wait)
 
 record-status:  ## where the record chain stands: episodes generated, each seed's stages (new / paused / finished / kept), which stages' data are complete
 	$(PY) scripts/record.py status

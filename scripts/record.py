@@ -12,10 +12,12 @@ and a stage that pauses stops the chain: the next stage never starts from an unf
 its data are complete (generated or refused by the solver), so every seed trains on the same designs: by default every
 episode of `data`; a stage's `needs` ({out: n}) asks for the first n episodes of those entries only (the reference
 stage reads the first 400 of data/ds_default), so it trains on one core while the other generates the rest
-(`make record-data JOBS=1`). A stage with `keep: <file>` is published when it finishes (learn.publish, without the
-optimiser: ~7 MB) as models/<run_root's name>_s<seed>_<stage>; commit it. A later stage starts from that directory
-when the run is gone, so a fresh machine (ten times, sessions 21-53) loses the data, not the training: it
-regenerates the data and goes on from the last kept stage. `status` prints where both seeds and the data stand.
+(`make record-data JOBS=1`). With `--wait` (make record WAIT=1) a stage whose data are not complete waits for
+them within the budget instead of exiting 4, so one command can follow a generator started beside it. A stage with
+`keep: <file>` is published when it finishes (learn.publish, without the optimiser: ~7 MB) as
+models/<run_root's name>_s<seed>_<stage>; commit it. A later stage starts from that directory when the run is gone,
+so a fresh machine (ten times, sessions 21-53) loses the data, not the training: it regenerates the data and goes on
+from the last kept stage. `status` prints where both seeds and the data stand.
 """
 from __future__ import annotations
 
@@ -35,6 +37,7 @@ from learn.publish import CARD, is_published  # noqa: E402
 
 CONF = ROOT / "conf" / "record.yaml"
 MIN_STAGE_MIN = 5.0  # a stage is not started with less than this left of the budget
+POLL_S = 60.0  # --wait: seconds between looks at the manifests while a stage's data are being generated
 WAITS = 4  # exit code: the next stage's data are not complete (not a failure: generate them, then the same command)
 OUTCOMES = {0: "every stage finished", 3: "paused (budget): run the same command again to go on",
             WAITS: "waits for data: make record-data, then the same command again"}
@@ -147,7 +150,9 @@ def data(cfg, jobs: int) -> int:
     return 0
 
 
-def train(cfg, seed: int, budget_min: float) -> int:
+def train(cfg, seed: int, budget_min: float, wait: bool = False) -> int:
+    """One seed's stages in order within `budget_min` minutes; `wait`: a stage whose data are not complete waits
+    for them (polled every POLL_S seconds, while the budget leaves a stage's minimum) instead of exiting WAITS."""
     deadline = time.monotonic() + 60 * budget_min
     for stage in cfg.stages:
         needs(cfg, stage)  # a bad `needs` or `from` refused before anything runs
@@ -165,6 +170,13 @@ def train(cfg, seed: int, budget_min: float) -> int:
                 keep(cfg, seed, stage)
             continue
         short = data_short(cfg, stage)
+        if short and wait:  # poll while the generator (make record-data, running beside) finishes them
+            print(f"[record] seed {seed} {stage.name}: waiting for its data "
+                  f"({', '.join(f'{k} lacks {v}' for k, v in short.items())} episodes), every {POLL_S:.0f} s",
+                  flush=True)
+            while short and (deadline - time.monotonic()) / 60 >= MIN_STAGE_MIN:
+                time.sleep(POLL_S)
+                short = data_short(cfg, stage)
         if short:
             print(f"[record] seed {seed} {stage.name}: its data are not complete: "
                   f"{', '.join(f'{k} lacks {v}' for k, v in short.items())} episodes; run make record-data first",
@@ -192,7 +204,8 @@ def train(cfg, seed: int, budget_min: float) -> int:
     return 0
 
 
-def side_by_side(cfg, conf_path: Path, seeds: list[int], budget_min: float, log_dir: Path) -> int:
+def side_by_side(cfg, conf_path: Path, seeds: list[int], budget_min: float, log_dir: Path,
+                 wait: bool = False) -> int:
     """Every seed's chain at once, one process (one core) each, each writing log_dir/record_s<seed>.log."""
     log_dir.mkdir(parents=True, exist_ok=True)
     procs = []
@@ -201,7 +214,8 @@ def side_by_side(cfg, conf_path: Path, seeds: list[int], budget_min: float, log_
         with open(log, "a") as out:
             procs.append((seed, log, subprocess.Popen(
                 [sys.executable, __file__, "train", "--seed", str(seed), "--budget-min", str(budget_min),
-                 "--conf", str(conf_path)], cwd=ROOT, stdout=out, stderr=subprocess.STDOUT)))
+                 "--conf", str(conf_path), *(["--wait"] if wait else [])],
+                cwd=ROOT, stdout=out, stderr=subprocess.STDOUT)))
         print(f"[record] seed {seed}: started (pid {procs[-1][2].pid}), log {log}", flush=True)
     codes = {seed: p.wait() for seed, _, p in procs}
     for seed, log, _ in procs:
@@ -247,6 +261,8 @@ def main(argv=None) -> int:
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--budget-min", type=float, default=150.0, help="minutes this invocation may train")
     p.add_argument("--conf", type=Path, default=CONF)
+    p.add_argument("--wait", action="store_true", help="train: a stage whose data are not complete waits for them "
+                   "(make record-data running beside) within the budget, instead of exiting 4")
     a = p.parse_args(argv)
     cfg = conf(a.conf)
     if a.what == "train" and a.seed is not None and a.seed not in list(cfg.seeds):
@@ -257,8 +273,8 @@ def main(argv=None) -> int:
         return data(cfg, a.jobs)
     if a.what == "train":
         if a.seed is None:
-            return side_by_side(cfg, a.conf, [int(k) for k in cfg.seeds], a.budget_min, a.log_dir)
-        return train(cfg, a.seed, a.budget_min)
+            return side_by_side(cfg, a.conf, [int(k) for k in cfg.seeds], a.budget_min, a.log_dir, a.wait)
+        return train(cfg, a.seed, a.budget_min, a.wait)
     if a.what == "members":
         print(",".join(members(cfg)))
         return 0

@@ -136,6 +136,33 @@ def test_a_stage_waits_only_for_the_data_it_needs(chain, capsys):
             record.main(["train", "--seed", "0", "--conf", str(partial)])
 
 
+def test_with_wait_a_stage_starts_once_the_generator_completes_its_data_and_gives_up_with_the_budget(
+        chain, capsys, monkeypatch):
+    path, runs = chain
+    cfg = OmegaConf.load(path)
+    cfg.data[0].n = 6  # two episodes the generator beside has not written yet
+    short = path.with_name("short.yaml")
+    OmegaConf.save(cfg, short)
+    data = Path(cfg.data[0].out)
+    looks = []
+
+    def generator_finishes(seconds):  # each poll's sleep: the second one finds the solver's last two refusals
+        looks.append(seconds)
+        if len(looks) == 2:
+            with open(data / "manifest.jsonl", "a") as f:
+                f.writelines(json.dumps({"episode": i, "status": "contact"}) + "\n" for i in (4, 5))
+
+    monkeypatch.setattr(record.time, "sleep", generator_finishes)
+    assert record.main(["train", "--seed", "0", "--conf", str(short), "--budget-min", "0.01", "--wait"]) == \
+        record.WAITS and not looks and not runs.exists()  # no stage's minimum left: no wait, no stage
+    capsys.readouterr()
+    assert record.main(["train", "--seed", "0", "--conf", str(short), "--budget-min", "30", "--wait"]) == 0
+    assert looks == [record.POLL_S] * 2
+    assert torch.load(runs / "rec_s0" / "b" / "last.pt", weights_only=True)["finished"]
+    out = capsys.readouterr().out
+    assert "a: waiting for its data" in out and "lacks 2 episodes" in out
+
+
 def test_the_record_reference_stage_needs_only_the_episodes_its_training_designs_come_from():
     cfg = record.conf()
     ref = cfg.stages[0]
