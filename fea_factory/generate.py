@@ -44,6 +44,7 @@ from fea_factory.tradeoff import apply_tolerance
 ROOT = Path(__file__).resolve().parent.parent
 SOLVE_GROUPS = ("blocks", "mesh", "material", "scene", "solver")
 REFUSALS = ("contact", "diverged")  # the solve's own verdicts on a design: the same attempt gets the same answer
+WRITTEN = ("ok", "skipped")  # a valid episode file on disk: solved, or found whole after a crash (kept, "skipped")
 
 
 class GenerateConfigError(ValueError):
@@ -200,7 +201,7 @@ def _generate(cfg: DictConfig, out: Path, task_overrides: list[str] | None) -> d
         for stale in out.glob(f"episode_{i:05d}.h5.*tmp"):
             stale.unlink()
     todo, skipped = [], 0
-    recorded = manifest.episodes_with_status("ok", "skipped")
+    recorded = manifest.episodes_with_status(*WRITTEN)
     for i in mine:
         path = episode_path(out, i)
         if path.exists() and not validate_episode(path):

@@ -32,7 +32,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 from omegaconf import OmegaConf  # noqa: E402
 
-from fea_factory.generate import REFUSALS, Manifest  # noqa: E402
+from fea_factory.generate import REFUSALS, WRITTEN, Manifest  # noqa: E402
 from learn.publish import CARD, is_published  # noqa: E402
 
 CONF = ROOT / "conf" / "record.yaml"
@@ -48,8 +48,9 @@ def conf(path: Path = CONF):
 
 
 def missing_episodes(entry, n: int | None = None) -> list[int]:
-    """Indices of `entry`'s range (its first `n` only, if given) with no record of a written episode or a refusal."""
-    done = Manifest(ROOT / entry.out / "manifest.jsonl").episodes_with_status("ok", *REFUSALS)
+    """Indices of `entry`'s range (its first `n` only, if given) with no record of a written episode (solved, or a
+    whole file a killed generator left, recorded as skipped) or a refusal."""
+    done = Manifest(ROOT / entry.out / "manifest.jsonl").episodes_with_status(*WRITTEN, *REFUSALS)
     return sorted(set(range(int(entry.start), int(entry.start) + int(entry.n if n is None else n))) - done)
 
 

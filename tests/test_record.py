@@ -41,9 +41,10 @@ def write_manifest(out: Path, episodes: dict[int, str]) -> None:
 
 
 def test_missing_episodes_are_those_neither_written_nor_refused(tmp_path):
-    write_manifest(tmp_path / "d", {10: "ok", 11: "contact", 12: "error", 13: "diverged"})
-    entry = OmegaConf.create({"out": str(tmp_path / "d"), "start": 10, "n": 6, "args": []})
-    assert record.missing_episodes(entry) == [12, 14, 15]  # an error is retried by the generator: still missing
+    write_manifest(tmp_path / "d", {10: "ok", 11: "contact", 12: "error", 13: "diverged", 16: "skipped"})
+    entry = OmegaConf.create({"out": str(tmp_path / "d"), "start": 10, "n": 7, "args": []})
+    # an error is retried by the generator: still missing; skipped: a whole file a killed generator left, kept
+    assert record.missing_episodes(entry) == [12, 14, 15]
 
 
 @pytest.fixture
