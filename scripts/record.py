@@ -72,6 +72,11 @@ def data_short(cfg, stage) -> dict[str, int]:
     return {out: k for out, n in needs(cfg, stage).items() if (k := len(missing_episodes(by_out[out], n)))}
 
 
+def lacking(short: dict[str, int]) -> str:
+    """data_short's {out: missing} as 'data/ds_large lacks 12, data/ds_val lacks 100 episodes'."""
+    return ", ".join(f"{k} lacks {v}" for k, v in short.items()) + " episodes"
+
+
 def stage_state(run_dir: Path, kept: Path | None = None) -> tuple[str, float]:
     """('finished' | 'paused' | 'new' | 'kept', minutes of training done) of one stage's run; 'kept': no run on this
     machine, but the stage's published directory `kept` (a finished stage, as good as one for what follows)."""
@@ -172,16 +177,14 @@ def train(cfg, seed: int, budget_min: float, wait: bool = False) -> int:
             continue
         short = data_short(cfg, stage)
         if short and wait:  # poll while the generator (make record-data, running beside) finishes them
-            print(f"[record] seed {seed} {stage.name}: waiting for its data "
-                  f"({', '.join(f'{k} lacks {v}' for k, v in short.items())} episodes), every {POLL_S:.0f} s",
-                  flush=True)
+            print(f"[record] seed {seed} {stage.name}: waiting for its data ({lacking(short)}), every "
+                  f"{POLL_S:.0f} s", flush=True)
             while short and (deadline - time.monotonic()) / 60 >= MIN_STAGE_MIN:
                 time.sleep(POLL_S)
                 short = data_short(cfg, stage)
         if short:
-            print(f"[record] seed {seed} {stage.name}: its data are not complete: "
-                  f"{', '.join(f'{k} lacks {v}' for k, v in short.items())} episodes; run make record-data first",
-                  file=sys.stderr)
+            print(f"[record] seed {seed} {stage.name}: its data are not complete: {lacking(short)}; run make "
+                  "record-data first", file=sys.stderr)
             return WAITS
         left = (deadline - time.monotonic()) / 60
         if left < MIN_STAGE_MIN:
