@@ -493,7 +493,8 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
             stop_reason = f"early stop: no {cfg.monitor} improvement in {bad} epochs"
             break
         epoch_s = row["seconds"] - (history[-2]["seconds"] if len(history) > 1 else 0.0)
-        if cfg.get("time_limit_min") and row["seconds"] + epoch_s > 60 * float(cfg.time_limit_min):
+        last_epoch = epoch + 1 >= int(cfg.epochs)  # no next epoch to pause before: the run is finished
+        if cfg.get("time_limit_min") and not last_epoch and row["seconds"] + epoch_s > 60 * float(cfg.time_limit_min):
             stop_reason = f"time limit {cfg.time_limit_min} min"  # the next epoch, as long as this one, would end
             break                                                 # past it: paused now, not killed mid-epoch
         if (epoch + 1) % int(cfg.checkpoint_every) == 0:

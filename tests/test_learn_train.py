@@ -138,6 +138,18 @@ def test_a_time_limited_run_pauses_before_an_epoch_that_would_end_past_the_limit
     assert [round(r["seconds"]) for r in history] == [100, 200]
 
 
+def test_a_time_limit_after_the_last_epoch_is_no_pause(data_dir, tmp_path, monkeypatch):
+    """The last epoch ends at 200 s of a 250 s limit; another as long would end past it, but there is none: the run
+    is finished, not paused (session 57: both ft1 stages ran all 4 epochs and were left `paused`)."""
+    import types
+    import learn.train as train_module
+    ticks = iter(range(0, 10**6, 100))
+    monkeypatch.setattr(train_module, "time", types.SimpleNamespace(perf_counter=lambda: float(next(ticks))))
+    done = train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=2", f"time_limit_min={250 / 60}")))
+    assert done["stop"] == "epochs" and done["epochs_run"] == 2
+    assert checkpoint.load(tmp_path / "last.pt")["finished"]
+
+
 def test_a_time_limited_run_pauses_and_continues_with_a_larger_limit(data_dir, tmp_path):
     first = train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=3", "time_limit_min=1e-6", "batch_size=1")))
     assert first["stop"].startswith("time limit") and first["epochs_run"] == 1
