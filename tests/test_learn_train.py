@@ -124,27 +124,28 @@ def test_training_resumes_from_the_last_checkpoint(data_dir, tmp_path):
     assert checkpoint.load(tmp_path / "last.pt")["config"]["model"]["activation"] == "relu"
 
 
-def test_a_time_limited_run_pauses_before_an_epoch_that_would_end_past_the_limit(data_dir, tmp_path, monkeypatch):
-    """Each epoch takes 100 s on a clock of learn.train's own; at a 250 s limit the run pauses after epoch 1 (200 s
-    done, a third epoch would end at 300 s), not after epoch 2 (300 s, past the limit: a session's end would have
-    killed it mid-epoch)."""
+@pytest.fixture
+def epochs_of_100_s(monkeypatch):
+    """learn.train's clock advanced 100 s at each reading: each epoch takes 100 s."""
     import types
     import learn.train as train_module
     ticks = iter(range(0, 10**6, 100))
     monkeypatch.setattr(train_module, "time", types.SimpleNamespace(perf_counter=lambda: float(next(ticks))))
+
+
+def test_a_time_limited_run_pauses_before_an_epoch_that_would_end_past_the_limit(data_dir, tmp_path, epochs_of_100_s):
+    """Each epoch takes 100 s on a clock of learn.train's own; at a 250 s limit the run pauses after epoch 1 (200 s
+    done, a third epoch would end at 300 s), not after epoch 2 (300 s, past the limit: a session's end would have
+    killed it mid-epoch)."""
     paused = train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=4", f"time_limit_min={250 / 60}")))
     history = checkpoint.load(tmp_path / "last.pt")["history"]
     assert paused["stop"].startswith("time limit") and paused["epochs_run"] == 2
     assert [round(r["seconds"]) for r in history] == [100, 200]
 
 
-def test_a_time_limit_after_the_last_epoch_is_no_pause(data_dir, tmp_path, monkeypatch):
+def test_a_time_limit_after_the_last_epoch_is_no_pause(data_dir, tmp_path, epochs_of_100_s):
     """The last epoch ends at 200 s of a 250 s limit; another as long would end past it, but there is none: the run
     is finished, not paused (session 57: both ft1 stages ran all 4 epochs and were left `paused`)."""
-    import types
-    import learn.train as train_module
-    ticks = iter(range(0, 10**6, 100))
-    monkeypatch.setattr(train_module, "time", types.SimpleNamespace(perf_counter=lambda: float(next(ticks))))
     done = train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=2", f"time_limit_min={250 / 60}")))
     assert done["stop"] == "epochs" and done["epochs_run"] == 2
     assert checkpoint.load(tmp_path / "last.pt")["finished"]
