@@ -9,9 +9,11 @@ re-running the same commands session after session:
 each gets a time limit that ends it before the budget of this invocation runs out (learn.train's time_limit_min counts
 a run's training minutes over all its invocations, so the limit is the minutes done plus what the budget leaves),
 and a stage that pauses stops the chain: the next stage never starts from an unfinished one. A stage starts only when
-its data are complete (generated or refused by the solver), so every seed trains on the same designs: by default every
-episode of `data`; a stage's `needs` ({out: n}) asks for the first n episodes of those entries only (the reference
-stage reads the first 400 of data/ds_default), so it trains on one core while the other generates the rest
+the budget leaves one epoch of it (learn.train always trains one epoch before it looks at its limit; an epoch as long
+as the stage's own last one, or the last one of the latest stage with the same args) and its data are complete
+(generated or refused by the solver), so every seed trains on the same designs: by default every episode of `data`;
+a stage's `needs` ({out: n}) asks for the first n episodes of those entries only (the reference stage reads the first
+400 of data/ds_default), so it trains on one core while the other generates the rest
 (`make record-data JOBS=1`). With `--wait` (make record WAIT=1) a stage whose data are not complete waits for
 them within the budget instead of exiting 4, so one command can follow a generator started beside it. A stage with
 `keep: <file>` is published when it finishes (learn.publish, without the optimiser: ~7 MB) as
@@ -36,7 +38,8 @@ from fea_factory.generate import REFUSALS, WRITTEN, Manifest  # noqa: E402
 from learn.publish import CARD, is_published  # noqa: E402
 
 CONF = ROOT / "conf" / "record.yaml"
-MIN_STAGE_MIN = 5.0  # a stage is not started with less than this left of the budget
+MIN_STAGE_MIN = 5.0  # a stage is not started with less than this left of the budget, nor with less than one epoch
+EPOCH_MARGIN = 1.1  # ... of it: learn.train always trains one epoch before it looks at its time limit (epoch_minutes)
 POLL_S = 60.0  # --wait: seconds between looks at the manifests while a stage's data are being generated
 WAITS = 4  # exit code: the next stage's data are not complete (not a failure: generate them, then the same command)
 OUTCOMES = {0: "every stage finished", 3: "paused (budget): run the same command again to go on",
@@ -145,6 +148,43 @@ def keep(cfg, seed: int, stage) -> None:
     print(f"[record] seed {seed} {stage.name}: kept as {kept}: commit it (git add {kept})", flush=True)
 
 
+def epoch_seconds(run_dir: Path, kept: Path | None = None) -> float | None:
+    """Seconds of a run's last epoch (its last.pt's history), or, with the run gone, the mean epoch of its kept
+    directory (the card's training seconds over its epochs); None when neither exists."""
+    import torch
+
+    last = ROOT / run_dir / "last.pt"
+    if last.exists():
+        history = torch.load(last, map_location="cpu", weights_only=True).get("history") or []
+        if history:
+            return float(history[-1]["seconds"]) - (float(history[-2]["seconds"]) if len(history) > 1 else 0.0)
+        return None
+    if kept is not None and is_published(ROOT / kept):
+        member = json.loads((ROOT / kept / CARD).read_text())["members"][0]
+        if member.get("training_seconds"):
+            return float(member["training_seconds"]) / (int(member["epoch"]) + 1)
+    return None
+
+
+def epoch_minutes(cfg, seed: int, stage) -> float | None:
+    """Minutes one epoch of `stage` is expected to take on this seed: its own run's last epoch (a paused stage), else
+    that of the latest earlier stage trained with the same args (ft1's for ft2: the same recipe on the same designs);
+    None when none has trained yet (the first stage; a stage unlike every earlier one)."""
+    earlier = list(cfg.stages)[:[s.name for s in cfg.stages].index(stage.name)]
+    for s in [stage, *reversed([e for e in earlier if list(e.args) == list(stage.args)])]:
+        seconds = epoch_seconds(run_dir(cfg, seed, s.name), kept_dir(cfg, seed, s))
+        if seconds:
+            return seconds / 60
+    return None
+
+
+def minimum_minutes(cfg, seed: int, stage) -> float:
+    """Budget a stage needs to be started: one expected epoch (with EPOCH_MARGIN), at least MIN_STAGE_MIN. A stage
+    started on less would overrun the budget by most of an epoch (ft2 on 5 minutes left, session 57: ~25 min)."""
+    epoch = epoch_minutes(cfg, seed, stage)
+    return max(MIN_STAGE_MIN, EPOCH_MARGIN * epoch) if epoch else MIN_STAGE_MIN
+
+
 def data(cfg, jobs: int) -> int:
     for entry in cfg.data:
         cmd = [sys.executable, "-m", "fea_factory.generate", f"n={entry.n}", f"start={entry.start}",
@@ -176,10 +216,11 @@ def train(cfg, seed: int, budget_min: float, wait: bool = False) -> int:
                 keep(cfg, seed, stage)
             continue
         short = data_short(cfg, stage)
+        minimum = minimum_minutes(cfg, seed, stage)
         if short and wait:  # poll while the generator (make record-data, running beside) finishes them
             print(f"[record] seed {seed} {stage.name}: waiting for its data ({lacking(short)}), every "
                   f"{POLL_S:.0f} s", flush=True)
-            while short and (deadline - time.monotonic()) / 60 >= MIN_STAGE_MIN:
+            while short and (deadline - time.monotonic()) / 60 >= minimum:
                 time.sleep(POLL_S)
                 short = data_short(cfg, stage)
         if short:
@@ -187,8 +228,9 @@ def train(cfg, seed: int, budget_min: float, wait: bool = False) -> int:
                   "record-data first", file=sys.stderr)
             return WAITS
         left = (deadline - time.monotonic()) / 60
-        if left < MIN_STAGE_MIN:
-            print(f"[record] seed {seed}: budget spent before {stage.name}; run the same command again to go on")
+        if left < minimum:
+            print(f"[record] seed {seed}: budget spent before {stage.name} ({left:.0f} min left, {minimum:.0f} needed: "
+                  "one epoch of it); run the same command again to go on")
             return 3
         start = [] if stage["from"] is None else [f"init_from={start_of(cfg, seed, stage['from'])}"]
         cmd = [sys.executable, "-m", "learn.train", *stage.args, *start, f"seed={seed}", f"run_dir={rd}",

@@ -194,6 +194,9 @@ def test_a_kept_stage_is_published_when_it_finishes_and_the_next_starts_from_it_
     assert record.main(["status", "--conf", str(kept_conf)]) == 0
     out = capsys.readouterr().out
     assert "a kept" in out and "b new" in out
+    member = card["members"][0]  # a's epoch length survives in its card: the mean over its epochs
+    assert record.epoch_minutes(cfg, 0, cfg.stages[0]) == pytest.approx(
+        member["training_seconds"] / (member["epoch"] + 1) / 60)
     assert record.main(["train", "--seed", "0", "--conf", str(kept_conf), "--budget-min", "30"]) == 0
     b = torch.load(runs / "rec_s0" / "b" / "last.pt", weights_only=True)
     assert b["finished"] and b["config"]["init_from"] == str(kept) and not (runs / "rec_s0" / "a").exists()
@@ -201,3 +204,27 @@ def test_a_kept_stage_is_published_when_it_finishes_and_the_next_starts_from_it_
     OmegaConf.save(cfg, kept_conf)
     with pytest.raises(ValueError, match="keep the file the next stage starts from"):
         record.main(["train", "--seed", "0", "--conf", str(kept_conf)])
+
+
+def test_no_stage_starts_on_less_budget_than_one_epoch_of_it(chain, capsys):
+    path, runs = chain  # learn.train trains one epoch before it looks at its limit: less would overrun the budget
+    cfg = OmegaConf.load(path)
+    cfg.stages.append({"name": "c", "from": "b/last.pt", "args": list(cfg.stages[1].args)})  # b's recipe again
+    three = path.with_name("three.yaml")
+    OmegaConf.save(cfg, three)
+    assert record.main(["train", "--seed", "0", "--conf", str(path), "--budget-min", "30"]) == 0  # a and b
+    b = runs / "rec_s0" / "b" / "last.pt"
+    ckpt = torch.load(b, weights_only=True)
+    ckpt["history"][-1]["seconds"] = 1800.0  # b's one epoch as long as a fine-tune's epoch on 1,045 designs
+    torch.save(ckpt, b)
+    cfg = record.conf(three)
+    assert record.epoch_minutes(cfg, 0, cfg.stages[2]) == pytest.approx(30.0)  # c: b's, the same args
+    assert 0 < record.epoch_minutes(cfg, 0, cfg.stages[0]) < 1  # a: its own run's
+    assert record.epoch_minutes(cfg, 1, cfg.stages[2]) is None  # seed 1 has trained nothing
+    assert record.minimum_minutes(cfg, 1, cfg.stages[2]) == record.MIN_STAGE_MIN
+    capsys.readouterr()
+    assert record.main(["train", "--seed", "0", "--conf", str(three), "--budget-min", "20"]) == 3
+    assert not (runs / "rec_s0" / "c").exists()
+    assert "budget spent before c (20 min left, 33 needed: one epoch of it)" in capsys.readouterr().out
+    assert record.main(["train", "--seed", "0", "--conf", str(three), "--budget-min", "40"]) == 0
+    assert torch.load(runs / "rec_s0" / "c" / "last.pt", weights_only=True)["finished"]
