@@ -148,33 +148,48 @@ def keep(cfg, seed: int, stage) -> None:
     print(f"[record] seed {seed} {stage.name}: kept as {kept}: commit it (git add {kept})", flush=True)
 
 
-def epoch_seconds(run_dir: Path, kept: Path | None = None) -> float | None:
-    """Seconds of a run's last epoch (its last.pt's history), or, with the run gone, the mean epoch of its kept
-    directory (the card's training seconds over its epochs); None when neither exists."""
+def trained(run_dir: Path, kept: Path | None = None) -> dict | None:
+    """What a stage's training left: its run's last.pt, or with the run gone its kept member (history and split
+    kept by learn.publish); None when neither exists."""
     import torch
 
     last = ROOT / run_dir / "last.pt"
-    if last.exists():
-        history = torch.load(last, map_location="cpu", weights_only=True).get("history") or []
-        if history:
-            return float(history[-1]["seconds"]) - (float(history[-2]["seconds"]) if len(history) > 1 else 0.0)
+    if not last.exists() and kept is not None and is_published(ROOT / kept):
+        last = ROOT / kept / json.loads((ROOT / kept / CARD).read_text())["members"][0]["file"]
+    return torch.load(last, map_location="cpu", weights_only=True) if last.exists() else None
+
+
+def epoch_seconds(ckpt: dict) -> float | None:
+    """Seconds of a checkpoint's last epoch (its history's training seconds count over all of its epochs)."""
+    history = ckpt.get("history") or []
+    if not history:
         return None
-    if kept is not None and is_published(ROOT / kept):
-        member = json.loads((ROOT / kept / CARD).read_text())["members"][0]
-        if member.get("training_seconds"):
-            return float(member["training_seconds"]) / (int(member["epoch"]) + 1)
-    return None
+    return float(history[-1]["seconds"]) - (float(history[-2]["seconds"]) if len(history) > 1 else 0.0)
+
+
+def designs_since(ckpt: dict) -> int:
+    """Episodes now in the checkpoint's data_dir and train_extra_dirs that its split does not name: the designs a
+    stage starting from it with the same args adds to training (learn.train: new episodes join train)."""
+    dirs = [ckpt["config"]["data_dir"], *(ckpt["config"].get("train_extra_dirs") or [])]
+    named = {n for names in ckpt["split"].values() for n in names}
+    return len({p.name for d in dirs for p in (ROOT / d).glob("*.h5")} - named)
 
 
 def epoch_minutes(cfg, seed: int, stage) -> float | None:
-    """Minutes one epoch of `stage` is expected to take on this seed: its own run's last epoch (a paused stage), else
-    that of the latest earlier stage trained with the same args (ft1's for ft2: the same recipe on the same designs);
+    """Minutes one epoch of `stage` is expected to take on this seed: its own run's last epoch (a paused stage: its
+    split is fixed), else the last epoch of the latest earlier stage trained with the same args (ft1's for ft2: the
+    same recipe), times the training designs the stage will have over those that stage had (the data may have grown
+    since: session 58's ds_large 300 -> 700; the validation's share of an epoch scaled too, so an upper estimate);
     None when none has trained yet (the first stage; a stage unlike every earlier one)."""
-    earlier = list(cfg.stages)[:[s.name for s in cfg.stages].index(stage.name)]
-    for s in [stage, *reversed([e for e in earlier if list(e.args) == list(stage.args)])]:
-        seconds = epoch_seconds(run_dir(cfg, seed, s.name), kept_dir(cfg, seed, s))
-        if seconds:
-            return seconds / 60
+    own = trained(run_dir(cfg, seed, stage.name), kept_dir(cfg, seed, stage))
+    if own is not None and epoch_seconds(own):
+        return epoch_seconds(own) / 60
+    names = [s.name for s in cfg.stages]
+    for s in reversed([e for e in list(cfg.stages)[:names.index(stage.name)] if list(e.args) == list(stage.args)]):
+        ckpt = trained(run_dir(cfg, seed, s.name), kept_dir(cfg, seed, s))
+        if ckpt is not None and epoch_seconds(ckpt):
+            n = len(ckpt["split"]["train"])
+            return epoch_seconds(ckpt) * (n + designs_since(ckpt)) / n / 60
     return None
 
 

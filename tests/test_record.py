@@ -194,9 +194,8 @@ def test_a_kept_stage_is_published_when_it_finishes_and_the_next_starts_from_it_
     assert record.main(["status", "--conf", str(kept_conf)]) == 0
     out = capsys.readouterr().out
     assert "a kept" in out and "b new" in out
-    member = card["members"][0]  # a's epoch length survives in its card: the mean over its epochs
-    assert record.epoch_minutes(cfg, 0, cfg.stages[0]) == pytest.approx(
-        member["training_seconds"] / (member["epoch"] + 1) / 60)
+    ran = torch.load(kept / "member_0.pt", weights_only=True)["history"]  # a's epoch length survives in its member
+    assert record.epoch_minutes(cfg, 0, cfg.stages[0]) == pytest.approx(ran[-1]["seconds"] / 60)
     assert record.main(["train", "--seed", "0", "--conf", str(kept_conf), "--budget-min", "30"]) == 0
     b = torch.load(runs / "rec_s0" / "b" / "last.pt", weights_only=True)
     assert b["finished"] and b["config"]["init_from"] == str(kept) and not (runs / "rec_s0" / "a").exists()
@@ -219,6 +218,12 @@ def test_no_stage_starts_on_less_budget_than_one_epoch_of_it(chain, capsys):
     torch.save(ckpt, b)
     cfg = record.conf(three)
     assert record.epoch_minutes(cfg, 0, cfg.stages[2]) == pytest.approx(30.0)  # c: b's, the same args
+    data = Path(cfg.data[0].out)  # two more episodes since b: c trains on 2 + 2 designs where b had 2
+    for s in (4, 5):
+        write_episode(data / f"ep{s:03d}.h5", synthetic_episode(3, 3, 5, 3, 3, frames=11, seed=s))
+    assert len(ckpt["split"]["train"]) == 2 and record.epoch_minutes(cfg, 0, cfg.stages[2]) == pytest.approx(60.0)
+    for s in (4, 5):
+        (data / f"ep{s:03d}.h5").unlink()
     assert 0 < record.epoch_minutes(cfg, 0, cfg.stages[0]) < 1  # a: its own run's
     assert record.epoch_minutes(cfg, 1, cfg.stages[2]) is None  # seed 1 has trained nothing
     assert record.minimum_minutes(cfg, 1, cfg.stages[2]) == record.MIN_STAGE_MIN
