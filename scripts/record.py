@@ -242,6 +242,7 @@ def train(cfg, seed: int, budget_min: float, wait: bool = False) -> int:
             print(f"[record] seed {seed} {stage.name}: its data are not complete: {lacking(short)}; run make "
                   "record-data first", file=sys.stderr)
             return WAITS
+        minimum = minimum_minutes(cfg, seed, stage)  # again: the designs a wait saw arrive lengthen the epoch
         left = (deadline - time.monotonic()) / 60
         if left < minimum:
             print(f"[record] seed {seed}: budget spent before {stage.name} ({left:.0f} min left, {minimum:.0f} needed: "
