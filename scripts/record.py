@@ -175,22 +175,28 @@ def designs_since(ckpt: dict) -> int:
     return len({p.name for d in dirs for p in (ROOT / d).glob("*.h5")} - named)
 
 
-def epoch_minutes(cfg, seed: int, stage) -> float | None:
-    """Minutes one epoch of `stage` is expected to take on this seed: its own run's last epoch (a paused stage: its
-    split is fixed), else the last epoch of the latest earlier stage trained with the same args (ft1's for ft2: the
-    same recipe), times the training designs the stage will have over those that stage had (the data may have grown
-    since: session 58's ds_large 300 -> 700; the validation's share of an epoch scaled too, so an upper estimate);
-    None when none has trained yet (the first stage; a stage unlike every earlier one)."""
+def epoch_estimate(cfg, seed: int, stage) -> tuple[float, int] | None:
+    """(minutes one epoch of `stage` is expected to take on this seed, epochs it has left): its own run's last epoch
+    (a paused stage: its split is fixed), else the last epoch of the latest earlier stage trained with the same args
+    (ft1's for ft2: the same recipe, the same epochs), times the training designs the stage will have over those that
+    stage had (the data may have grown since: session 58's ds_large 300 -> 700; the validation's share of an epoch is
+    scaled too, so an upper estimate); None when none has trained yet (the first stage; one unlike every earlier one)."""
     own = trained(run_dir(cfg, seed, stage.name), kept_dir(cfg, seed, stage))
     if own is not None and epoch_seconds(own):
-        return epoch_seconds(own) / 60
+        return epoch_seconds(own) / 60, int(own["config"]["epochs"]) - len(own["history"])
     names = [s.name for s in cfg.stages]
     for s in reversed([e for e in list(cfg.stages)[:names.index(stage.name)] if list(e.args) == list(stage.args)]):
         ckpt = trained(run_dir(cfg, seed, s.name), kept_dir(cfg, seed, s))
         if ckpt is not None and epoch_seconds(ckpt):
             n = len(ckpt["split"]["train"])
-            return epoch_seconds(ckpt) * (n + designs_since(ckpt)) / n / 60
+            return epoch_seconds(ckpt) * (n + designs_since(ckpt)) / n / 60, int(ckpt["config"]["epochs"])
     return None
+
+
+def epoch_minutes(cfg, seed: int, stage) -> float | None:
+    """epoch_estimate's minutes an epoch; None when nothing has trained that tells."""
+    estimate = epoch_estimate(cfg, seed, stage)
+    return None if estimate is None else estimate[0]
 
 
 def minimum_minutes(cfg, seed: int, stage) -> float:
@@ -308,6 +314,11 @@ def status(cfg) -> int:
         print(f"seed {seed}: " + ", ".join(
             f"{s.name} {st} ({epochs_done(run_dir(cfg, seed, s.name)) if st == 'paused' else ''}{m:.0f} min)"
             for s in cfg.stages for st, m in [state(cfg, seed, s)]))
+        upcoming = next((s for s in cfg.stages if state(cfg, seed, s)[0] not in ("finished", "kept")), None)
+        if upcoming is not None and (estimate := epoch_estimate(cfg, seed, upcoming)) is not None:
+            epoch, left = estimate
+            print(f"seed {seed} next: {upcoming.name}, ~{epoch:.0f} min an epoch x {left} epochs left = ~{epoch * left:.0f} "
+                  f"min (a budget under {minimum_minutes(cfg, seed, upcoming):.0f} min does not start it)")
     for s in cfg.stages:
         short = data_short(cfg, s)
         print(f"stage {s.name}: " + ("its data are complete" if not short else "waits for " + ", ".join(
