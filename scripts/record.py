@@ -180,7 +180,7 @@ def epoch_estimate(cfg, seed: int, stage) -> tuple[float, int] | None:
     (a paused stage: its split is fixed), else the last epoch of the latest earlier stage trained with the same args
     (ft1's for ft2: the same recipe, the same epochs), times the training designs the stage will have over those that
     stage had (the data may have grown since: session 58's ds_large 300 -> 700; the validation's share of an epoch is
-    scaled too, so an upper estimate); None when none has trained yet (the first stage; one unlike every earlier one)."""
+    scaled too, so an upper estimate); None when none has trained yet (the first stage; one unlike all before it)."""
     own = trained(run_dir(cfg, seed, stage.name), kept_dir(cfg, seed, stage))
     if own is not None and epoch_seconds(own):
         return epoch_seconds(own) / 60, int(own["config"]["epochs"]) - len(own["history"])
@@ -317,8 +317,9 @@ def status(cfg) -> int:
         upcoming = next((s for s in cfg.stages if state(cfg, seed, s)[0] not in ("finished", "kept")), None)
         if upcoming is not None and (estimate := epoch_estimate(cfg, seed, upcoming)) is not None:
             epoch, left = estimate
-            print(f"seed {seed} next: {upcoming.name}, ~{epoch:.0f} min an epoch x {left} epochs left = ~{epoch * left:.0f} "
-                  f"min (a budget under {minimum_minutes(cfg, seed, upcoming):.0f} min does not start it)")
+            print(f"seed {seed} next: {upcoming.name}, ~{epoch:.0f} min an epoch x {left} epochs left = "
+                  f"~{epoch * left:.0f} min (a budget under {minimum_minutes(cfg, seed, upcoming):.0f} min does not "
+                  "start it)")
     for s in cfg.stages:
         short = data_short(cfg, s)
         print(f"stage {s.name}: " + ("its data are complete" if not short else "waits for " + ", ".join(

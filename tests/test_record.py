@@ -229,7 +229,8 @@ def test_no_stage_starts_on_less_budget_than_one_epoch_of_it(chain, capsys):
     assert record.minimum_minutes(cfg, 1, cfg.stages[2]) == record.MIN_STAGE_MIN
     capsys.readouterr()
     assert record.main(["status", "--conf", str(three)]) == 0  # what the next stage costs, for planning a session
-    assert "seed 0 next: c, ~30 min an epoch x 1 epochs left = ~30 min (a budget under 33 min" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "seed 0 next: c, ~30 min an epoch x 1 epochs left = ~30 min (a budget under 33 min" in out
     assert record.main(["train", "--seed", "0", "--conf", str(three), "--budget-min", "20"]) == 3
     assert not (runs / "rec_s0" / "c").exists()
     assert "budget spent before c (20 min left, 33 needed: one epoch of it)" in capsys.readouterr().out
