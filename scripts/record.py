@@ -321,6 +321,9 @@ def status(cfg) -> int:
                   f"~{epoch * left:.0f} min (a budget under {minimum_minutes(cfg, seed, upcoming):.0f} min does not "
                   "start it)")
     for s in cfg.stages:
+        if all(state(cfg, seed, s)[0] in ("finished", "kept") for seed in cfg.seeds):
+            print(f"stage {s.name}: done by every seed")  # data added since are for the stages after it
+            continue
         short = data_short(cfg, s)
         print(f"stage {s.name}: " + ("its data are complete" if not short else "waits for " + ", ".join(
             f"{k} ({v} missing of its first {needs(cfg, s)[k]})" for k, v in short.items())))

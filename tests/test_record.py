@@ -95,7 +95,9 @@ def test_no_stage_starts_without_its_data_or_its_budget_nor_from_an_unfinished_o
     assert record.stage_state(paused)[0] == "paused"
     capsys.readouterr()
     assert record.main(["status", "--conf", str(path)]) == 0
-    assert "a paused (epoch 1 of 1, " in capsys.readouterr().out  # epochs done of the run's epochs
+    out = capsys.readouterr().out
+    assert "a paused (epoch 1 of 1, " in out  # epochs done of the run's epochs
+    assert "stage a: its data are complete" in out and "stage b: its data are complete" in out  # a is not done
     assert record.main(["train", "--seed", "0", "--conf", str(path), "--budget-min", "0.01"]) == 3  # resumes nothing, starts nothing
     assert "budget spent before a" in capsys.readouterr().out
     with pytest.raises(SystemExit):
@@ -129,7 +131,7 @@ def test_a_stage_waits_only_for_the_data_it_needs(chain, capsys):
     assert "lacks 2 episodes" in (log_dir / "record_s1.log").read_text()
     assert record.main(["status", "--conf", str(partial)]) == 0
     out = capsys.readouterr().out
-    assert "stage a: its data are complete" in out and "stage b: waits for" in out and "2 missing of its first 6" in out
+    assert "stage a: done by every seed" in out and "stage b: waits for" in out and "2 missing of its first 6" in out
     for bad in ({"elsewhere": 2}, {cfg.data[0].out: 7}, {cfg.data[0].out: 0}):
         cfg.stages[0].needs = bad
         OmegaConf.save(cfg, partial)
