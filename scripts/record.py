@@ -202,7 +202,11 @@ def epoch_minutes(cfg, seed: int, stage) -> float | None:
 def minimum_minutes(cfg, seed: int, stage) -> float:
     """Budget a stage needs to be started: one expected epoch (with EPOCH_MARGIN), at least MIN_STAGE_MIN. A stage
     started on less would overrun the budget by most of an epoch (ft2 on 5 minutes left, session 57: ~25 min)."""
-    epoch = epoch_minutes(cfg, seed, stage)
+    return minimum_of(epoch_minutes(cfg, seed, stage))
+
+
+def minimum_of(epoch: float | None) -> float:
+    """minimum_minutes for an expected epoch of `epoch` minutes (None: not known)."""
     return max(MIN_STAGE_MIN, EPOCH_MARGIN * epoch) if epoch else MIN_STAGE_MIN
 
 
@@ -310,18 +314,19 @@ def epochs_done(run_dir: Path) -> str:
 def status(cfg) -> int:
     for e in cfg.data:
         print(f"{e.out}: {int(e.n) - len(missing_episodes(e))} of {e.n} episodes done")
+    states = {(seed, s.name): state(cfg, seed, s) for seed in cfg.seeds for s in cfg.stages}  # each checkpoint once
+    done = ("finished", "kept")
     for seed in cfg.seeds:
         print(f"seed {seed}: " + ", ".join(
             f"{s.name} {st} ({epochs_done(run_dir(cfg, seed, s.name)) if st == 'paused' else ''}{m:.0f} min)"
-            for s in cfg.stages for st, m in [state(cfg, seed, s)]))
-        upcoming = next((s for s in cfg.stages if state(cfg, seed, s)[0] not in ("finished", "kept")), None)
+            for s in cfg.stages for st, m in [states[seed, s.name]]))
+        upcoming = next((s for s in cfg.stages if states[seed, s.name][0] not in done), None)
         if upcoming is not None and (estimate := epoch_estimate(cfg, seed, upcoming)) is not None:
             epoch, left = estimate
             print(f"seed {seed} next: {upcoming.name}, ~{epoch:.0f} min an epoch x {left} epochs left = "
-                  f"~{epoch * left:.0f} min (a budget under {minimum_minutes(cfg, seed, upcoming):.0f} min does not "
-                  "start it)")
+                  f"~{epoch * left:.0f} min (a budget under {minimum_of(epoch):.0f} min does not start it)")
     for s in cfg.stages:
-        if all(state(cfg, seed, s)[0] in ("finished", "kept") for seed in cfg.seeds):
+        if all(states[seed, s.name][0] in done for seed in cfg.seeds):
             print(f"stage {s.name}: done by every seed")  # data added since are for the stages after it
             continue
         short = data_short(cfg, s)
