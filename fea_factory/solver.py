@@ -270,7 +270,7 @@ class GridSolver:
         from petsc4py import PETSc
 
         s = self.settings
-        self.A = create_matrix(self.K_form)
+        self.A = self._symmetric_tangent_matrix() if s.linear_solver == "direct" else create_matrix(self.K_form)
         self.r = create_vector(self.R_form)
         snes = PETSc.SNES().create(self.comm)
         snes.setType("newtonls")
@@ -288,7 +288,6 @@ class GridSolver:
             ksp.setType("preonly")
             ksp.getPC().setType("cholesky")
             ksp.getPC().setFactorSolverType("mumps")
-            self.A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
         else:
             ksp.setType("cg")
             ksp.getPC().setType("gamg")
@@ -296,6 +295,24 @@ class GridSolver:
             self.A.setNearNullSpace(self._rigid_body_modes())
         snes.setConvergenceHistory(length=s.max_it + 1, reset=True)
         self.snes = snes
+
+    def _symmetric_tangent_matrix(self):
+        """The tangent's upper triangle in 3 x 3 blocks (PETSc SBAIJ), what MUMPS LDL^T reads: assembly inserts
+        half the entries of the full (AIJ) matrix, whose insertion cost as much as the element kernels (session 59,
+        16,875 DOFs: assembly 0.142 -> 0.079 s, factorisation 0.108 -> 0.098 s, the same solution). Its sparsity
+        is the full matrix's, assembled once at the initial state and converted."""
+        from dolfinx.fem.petsc import assemble_matrix, create_matrix
+        from petsc4py import PETSc
+
+        full = create_matrix(self.K_form)
+        assemble_matrix(full, self.K_form, bcs=self.bcs)
+        full.assemble()
+        full.setOption(PETSc.Mat.Option.SYMMETRIC, True)  # MatConvert to SBAIJ requires it (values are reset by
+        upper = full.convert("sbaij", PETSc.Mat())        # assembly); an output Mat, else petsc4py converts in place
+        full.destroy()
+        upper.setOption(PETSc.Mat.Option.IGNORE_LOWER_TRIANGULAR, True)  # the element matrices are full
+        upper.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)  # the pattern is complete: never grow
+        return upper
 
     def _set_line_search(self, kind: str) -> None:
         from petsc4py import PETSc
