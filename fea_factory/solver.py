@@ -40,7 +40,7 @@ class SolverSettings:
     force_tol: float = 1e-5
     line_search: str = "basic"
     linear_solver: str = "direct"
-    predictor: str = "linear"
+    predictor: str = "quadratic"
     stabilize: bool = False
     stabilize_max_steps: int = 60
     stabilize_accept_mm: float = 0.1
@@ -59,7 +59,7 @@ class SolverSettings:
             ("newton.force_tol", 0 < self.force_tol < 1e-2, "in (0, 1e-2)"),
             ("newton.line_search", self.line_search in ("basic", "bt"), "basic | bt (cp and l2 diverge here)"),
             ("linear_solver", self.linear_solver in ("direct", "iterative"), "direct | iterative"),
-            ("predictor", self.predictor in ("linear", "none"), "linear | none"),
+            ("predictor", self.predictor in ("quadratic", "linear", "none"), "quadratic | linear | none"),
             ("stabilize_max_steps", 1 <= self.stabilize_max_steps <= 10000, "in [1, 10000]"),
             ("stabilize_accept_mm", 0 < self.stabilize_accept_mm <= 10, "in (0, 10] mm"),
         ]
@@ -99,6 +99,19 @@ def stress_quadrature(degree: int) -> tuple[np.ndarray, np.ndarray]:
 
     qp, qw = basix.make_quadrature(basix.CellType.hexahedron, int(degree))
     return np.asarray(qp), np.asarray(qw)
+
+
+def predictor_weights(kind: str, dt: float, dt_prev: float | None, dt_prev2: float | None) -> tuple[float, float]:
+    """The start of Newton at t + dt from the accepted states u (at t), u_1 (t - dt_prev), u_2 (t - dt_prev - dt_prev2):
+    u + w1 (u_1 - u) + w2 (u_2 - u), the polynomial through them evaluated at t + dt. quadratic: through all three
+    (exact for a path quadratic in t), linear: through u and u_1 (also quadratic's while only two states exist),
+    none: u. A missing state (None: the start, or a jump across an instability) lowers the order."""
+    if kind == "quadratic" and dt_prev and dt_prev2:
+        a, b = dt_prev, dt_prev + dt_prev2  # the earlier states' distances back from t
+        return -dt * (dt + b) / (a * (b - a)), dt * (dt + a) / (b * (b - a))
+    if kind in ("linear", "quadratic") and dt_prev:
+        return -dt / dt_prev, 0.0
+    return 0.0, 0.0
 
 
 class SolveFailure(RuntimeError):
@@ -426,8 +439,9 @@ class GridSolver:
         dt_max = s.save_every * dt_nominal if s.adaptive else dt_nominal
         dt = dt_max
         t_now, increment = 0.0, 0
-        u_prev = self.u.vector.copy()  # for the linear predictor
-        dt_prev = None
+        u_prev = self.u.vector.copy()  # the last two accepted states before u, for the predictor
+        u_prev2 = self.u.vector.copy()
+        dt_prev, dt_prev2 = None, None
         x_backup = self.u.vector.copy()
         next_frames = list(s.frame_times[1:])
         while next_frames:
@@ -436,8 +450,11 @@ class GridSolver:
             cut, crossed = 0, False
             while True:
                 x_backup.copy(self.u.vector)  # restart from the last converged state (petsc: a.copy(b) is b <- a)
-                if dt_prev and s.predictor == "linear":  # extrapolate along the load path: u + dt/dt_prev (u - u_prev)
-                    self.u.vector.axpy(dt / dt_prev, x_backup - u_prev)
+                w1, w2 = predictor_weights(s.predictor, dt, dt_prev, dt_prev2)  # extrapolate along the load path
+                if w1:
+                    self.u.vector.axpy(w1, u_prev - x_backup)
+                if w2:
+                    self.u.vector.axpy(w2, u_prev2 - x_backup)
                 self.t.value = t_now + dt
                 self.snes.solve(None, self.u.vector)
                 reason = self.snes.getConvergedReason()
@@ -481,8 +498,10 @@ class GridSolver:
                 self.snes.getKSP().reset()
                 dt /= 2
             increment += 1
+            u_prev.copy(u_prev2)
             x_backup.copy(u_prev)
             self.u.vector.copy(x_backup)
+            dt_prev2 = None if crossed else dt_prev
             dt_prev = None if crossed else dt  # a jump to another branch is no path to extrapolate
             t_now = t_now + dt
             self.stats["increment_t"].append(t_now)

@@ -19,7 +19,7 @@ from fea_helpers import (JOINT, beam_midline, bottom_layer_prestress, circle_fit
 from fea_factory.design import lattice_design  # noqa: E402
 from fea_factory.mesh import MeshPreset  # noqa: E402
 from fea_factory.scene import Scene  # noqa: E402
-from fea_factory.solver import SolveFailure, SolverSettings  # noqa: E402
+from fea_factory.solver import SolveFailure, SolverSettings, predictor_weights  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 COARSE = MeshPreset(9, 3, 3, "coarse-beam")
@@ -142,6 +142,23 @@ def test_no_load_no_displacement():
                                  lambda m: np.zeros((m.n_cells, 3, 3)), scene, np.zeros(3), clamp="top_face")
     assert np.abs(frames.node_xyz[-1] - frames.node_xyz[0]).max() < 1e-12
     assert np.abs(frames.stress[-1]).max() < 1e-12
+
+
+@pytest.mark.parametrize("dts", [(0.05, 0.05, 0.05), (0.1, 0.05, 0.025), (0.0125, 0.05, 0.1)])
+def test_predictor_extrapolates_polynomial_paths_exactly(dts):
+    """quadratic reproduces any path quadratic in t from three accepted states, linear any linear one; with one
+    state missing quadratic falls back to linear, with none every kind keeps u."""
+    dt, dt1, dt2 = dts
+    t = 0.4
+    for path, kind in ((lambda x: 3.0 - 2.0 * x + 5.0 * x**2, "quadratic"), (lambda x: 1.0 + 7.0 * x, "linear")):
+        w1, w2 = predictor_weights(kind, dt, dt1, dt2)
+        u, u1, u2 = path(t), path(t - dt1), path(t - dt1 - dt2)
+        assert u + w1 * (u1 - u) + w2 * (u2 - u) == pytest.approx(path(t + dt), rel=1e-12)
+    assert predictor_weights("quadratic", dt, dt1, None) == predictor_weights("linear", dt, dt1, dt2)
+    assert predictor_weights("quadratic", dt, None, None) == predictor_weights("none", dt, dt1, dt2) == (0.0, 0.0)
+    w1, _ = predictor_weights("linear", dt, dt1, dt2)  # on a curved path (t^2) linear misses by dt (dt + dt_prev)
+    u, u1 = t**2, (t - dt1) ** 2
+    assert (t + dt) ** 2 - (u + w1 * (u1 - u)) == pytest.approx(dt * (dt + dt1), rel=1e-9)
 
 
 def test_tangent_stored_as_upper_triangle_is_the_full_tangent():
