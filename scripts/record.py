@@ -34,7 +34,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 from omegaconf import OmegaConf  # noqa: E402
 
-from fea_factory.generate import REFUSALS, WRITTEN, Manifest  # noqa: E402
+from fea_factory.generate import REFUSALS, WRITTEN, Manifest, episode_path  # noqa: E402
 from learn.publish import CARD, is_published  # noqa: E402
 
 CONF = ROOT / "conf" / "record.yaml"
@@ -167,12 +167,20 @@ def epoch_seconds(ckpt: dict) -> float | None:
     return float(history[-1]["seconds"]) - (float(history[-2]["seconds"]) if len(history) > 1 else 0.0)
 
 
-def designs_since(ckpt: dict) -> int:
-    """Episodes now in the checkpoint's data_dir and train_extra_dirs that its split does not name: the designs a
-    stage starting from it with the same args adds to training (learn.train: new episodes join train)."""
+def designs_since(cfg, ckpt: dict) -> int:
+    """Episodes the checkpoint's data_dir and train_extra_dirs hold, or will hold once `make record-data` has written
+    what their data entries still miss, that its split does not name: the designs a stage starting from it with the
+    same args adds to training (learn.train: new episodes join train). Counting the missing ones keeps the estimate
+    whole while a fresh machine regenerates the data (session 59: ft2 shown at ~24 min an epoch, not ~34)."""
     dirs = [ckpt["config"]["data_dir"], *(ckpt["config"].get("train_extra_dirs") or [])]
     named = {n for names in ckpt["split"].values() for n in names}
-    return len({p.name for d in dirs for p in (ROOT / d).glob("*.h5")} - named)
+    entries = {str(e.out): e for e in cfg.data}
+    episodes = set()
+    for d in dirs:
+        episodes |= {p.name for p in (ROOT / d).glob("*.h5")}
+        if str(d) in entries:
+            episodes |= {episode_path(Path(d), i).name for i in missing_episodes(entries[str(d)])}
+    return len(episodes - named)
 
 
 def epoch_estimate(cfg, seed: int, stage) -> tuple[float, int] | None:
@@ -189,7 +197,7 @@ def epoch_estimate(cfg, seed: int, stage) -> tuple[float, int] | None:
         ckpt = trained(run_dir(cfg, seed, s.name), kept_dir(cfg, seed, s))
         if ckpt is not None and epoch_seconds(ckpt):
             n = len(ckpt["split"]["train"])
-            return epoch_seconds(ckpt) * (n + designs_since(ckpt)) / n / 60, int(ckpt["config"]["epochs"])
+            return epoch_seconds(ckpt) * (n + designs_since(cfg, ckpt)) / n / 60, int(ckpt["config"]["epochs"])
     return None
 
 

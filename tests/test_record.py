@@ -226,6 +226,9 @@ def test_no_stage_starts_on_less_budget_than_one_epoch_of_it(chain, capsys):
     assert len(ckpt["split"]["train"]) == 2 and record.epoch_minutes(cfg, 0, cfg.stages[2]) == pytest.approx(60.0)
     for s in (4, 5):
         (data / f"ep{s:03d}.h5").unlink()
+    grown = record.conf(three)  # a fresh machine: its data entry grown by two episodes, not yet generated
+    grown.data[0].n = 6
+    assert record.epoch_minutes(grown, 0, grown.stages[2]) == pytest.approx(60.0)  # counted as they will be
     assert 0 < record.epoch_minutes(cfg, 0, cfg.stages[0]) < 1  # a: its own run's
     assert record.epoch_minutes(cfg, 1, cfg.stages[2]) is None  # seed 1 has trained nothing
     assert record.minimum_minutes(cfg, 1, cfg.stages[2]) == record.MIN_STAGE_MIN
