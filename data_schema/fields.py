@@ -123,7 +123,8 @@ FIELDS: tuple[Field, ...] = (
     _f("versions_json", "provenance", None, "str", "", "versions of dolfinx, gmsh, petsc, numpy, h5py, python"),
     _f("mpi_size", "provenance", None, "int64", "", "MPI ranks of the solve"),
     _f("solver_stats_json", "provenance", None, "str", "",
-       "newton iterations, cutbacks, increments taken, wall times mesh/jit/solve/total in s"),
+       "newton iterations, cutbacks, increments taken, wall times mesh/jit/solve/total in s, "
+       "load_per_cpu (1-min load average per CPU around the solve: above ~1, the wall times are inflated)"),
     _f("scene_terms_json", "provenance", None, "str", "", "which physics terms were active"),
     _f("increment_t", "provenance", ("K",), "float64", "1", "pseudo-times of the load increments actually taken"),
     _f("newton_iterations", "provenance", ("K",), "int32", "", "Newton iterations of each increment"),

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import platform
 import subprocess
 import sys
@@ -54,6 +55,13 @@ def package_versions() -> dict:
             "h5py": h5py.__version__, "python": platform.python_version()}
 
 
+def machine_load(load_before: float) -> float:
+    """The 1-minute load average per CPU, the larger of before and after a solve: ~1 when every core ran one job
+    (make dataset JOBS=2 on 2 cores), more when other work shared them, and then the wall times above are inflated
+    (a speed-up against them overstated: session 59's held-out episodes, generated beside tests and probes)."""
+    return round(max(load_before, os.getloadavg()[0]) / (os.cpu_count() or 1), 2)
+
+
 def solve_design(design: Design, cfg, comm, progress=None):
     """Mesh and solve a validated design with the conf groups in cfg; returns (mesh, frames, stats, scene)."""
     validate(design, DesignLimits.from_mapping(cfg.blocks.limits))
@@ -69,9 +77,11 @@ def solve_design(design: Design, cfg, comm, progress=None):
     solver = GridSolver(design, keyed, material, scene, S0, scene.body_force(float(cfg.material.density)),
                         settings, comm)
     solver.stats["wall_mesh_s"] += t_keyed
+    load_before = os.getloadavg()[0]
     frames = solver.run(progress=progress)
     solver.stats["wall_total_s"] = time.perf_counter() - t0
     solver.stats["mpi_size"] = comm.size
+    solver.stats["load_per_cpu"] = machine_load(load_before)
     solver.stats["marlow_c"] = list(material.c)
     return keyed, frames, solver.stats, scene
 
