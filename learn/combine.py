@@ -63,6 +63,8 @@ def combine(reports: list[dict]) -> dict:
         "n_parameters": reports[0].get("n_parameters"),
         "timing_busy": any(bool(r.get("timing_busy")) for r in reports),
         "load_average": max((r["load_average"] for r in reports if r.get("load_average") is not None), default=None),
+        "fea_load_per_cpu_max": max((v for r in reports if (v := r.get("fea_load_per_cpu_max")) is not None
+                                     and np.isfinite(v)), default=None),
         "cpus": reports[0].get("cpus"),
         "timing": "design-weighted means of the sources' timings (learn.evaluate: " + reports[0].get("timing", "") + ")",
         "sources": [{"data_dir": r["data_dir"], "split": r["split"], "n_designs": r["n_designs"],

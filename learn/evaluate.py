@@ -281,6 +281,23 @@ def split_paths(split: str, stored: dict[str, list[str]], data_dir: Path, source
     return design_paths([e for n in dict.fromkeys(names) for e in stored[n]], data_dir, config)
 
 
+BUSY_LOAD_PER_CPU = 1.25  # FEA on a busy machine: as `busy` for the rollout timings, half a thread over 2 CPUs (JOBS=2: ~1)
+
+
+def fea_load_max(features) -> float:
+    """The highest machine load per CPU recorded around the test episodes' FEA solves (provenance), NaN if none."""
+    loads = [f.fea_load_per_cpu for f in features if np.isfinite(f.fea_load_per_cpu)]
+    return float(max(loads)) if loads else float("nan")
+
+
+def busy_note(load: float | None) -> str:
+    """A warning for the report when FEA wall times were taken on a busy machine (the speed-up is overstated)."""
+    if load is None or not load > BUSY_LOAD_PER_CPU:
+        return ""
+    return (f" (measured on a busy machine: load {load:.2f} per CPU at worst, over {BUSY_LOAD_PER_CPU}; the FEA times "
+            "and so the speed-up are overstated: regenerate the episodes on a quiet machine)")
+
+
 def evaluate(cfg: DictConfig) -> dict:
     torch.set_num_threads(integer_in(cfg.threads, "threads", 1, 1024, "torch threads while rolling out and timing"))
     repeats = integer_in(cfg.timing_repeats, "timing_repeats", 1, 1000, "timed rollouts per design, median taken")
@@ -335,6 +352,7 @@ def evaluate(cfg: DictConfig) -> dict:
         "compile_s": times["compile"],
         "rollout_backend": backend,
         "fea_s_per_episode": fea_s,
+        "fea_load_per_cpu_max": fea_load_max(features),
         "speedup": fea_s / rollout_s,
         "speedup_batched": fea_s / batched_s,
         "n_invalid": int(sum(not d["valid"] for d in designs)),
@@ -396,7 +414,8 @@ def markdown(report: dict, with_designs: bool = True) -> str:
         f"rollout {report['rollout_ms_per_design']:.2f} ms/design ({report.get('rollout_backend', 'torchscript')}, "
         f"{report['threads']} thread; eager "
         f"{report['rollout_ms_per_design_eager']:.2f} ms), batched "
-        f"{report['rollout_ms_per_design_batched']:.3f} ms/design; FEA {report['fea_s_per_episode']:.3g} s/episode; "
+        f"{report['rollout_ms_per_design_batched']:.3f} ms/design; FEA {report['fea_s_per_episode']:.3g} s/episode"
+        f"{busy_note(report.get('fea_load_per_cpu_max', float('nan')))}; "
         f"speed-up {report['speedup']:.3g}x (batched {report['speedup_batched']:.3g}x); "
         f"{report['n_invalid']} rollouts flagged invalid"
         + (f" ({report['n_compiled_departures']} where the compiled rollout departs from eager: bifurcations, their "

@@ -90,6 +90,7 @@ class EpisodeFeatures:
     point_nodes: np.ndarray  # [P] FEA node id of every rebuilt point: joints' JOINT_POINTS, then beams' BEAM_POINTS
     fea_points: np.ndarray  # [F, P, 3] FEA positions of those nodes, translated like the features
     conditions: dict = field(default_factory=dict)  # learn.conditions.episode_conditions: physics not in the graph
+    fea_load_per_cpu: float = float("nan")  # provenance: how busy the machine was around the FEA (fea_factory.solve)
 
     @property
     def n_frames(self) -> int:
@@ -117,6 +118,7 @@ class EpisodeFeatures:
 
         return EpisodeFeatures(
             name=self.name, family=self.family, design_size=self.design_size, fea_seconds=self.fea_seconds,
+            fea_load_per_cpu=self.fea_load_per_cpu,
             t=self.t, incidence=self.incidence,
             joint_state=state(self.joint_state, JOINT), beam_state=state(self.beam_state, BEAM),
             joint_bc=rotate_term(self.joint_bc, JOINT.bc, R), beam_bc=rotate_term(self.beam_bc, BEAM.bc, R),
@@ -182,6 +184,7 @@ class EpisodeFeatures:
         beam_ends = np.where(reverse[:, None], np.stack([receivers, senders], 1), np.stack([senders, receivers], 1))
         return EpisodeFeatures(
             name=self.name, family=self.family, design_size=self.design_size, fea_seconds=self.fea_seconds,
+            fea_load_per_cpu=self.fea_load_per_cpu,
             t=self.t, incidence=Incidence.from_beams(beam_ends, J),
             joint_state=joints(self.joint_state, state_M), beam_state=beams(self.beam_state, state_M),
             joint_bc=joints(self.joint_bc, bc_M), beam_bc=beams(self.beam_bc, bc_M), origin=R @ self.origin,
@@ -339,6 +342,7 @@ def extract(ep, name: str = "") -> EpisodeFeatures:
     return EpisodeFeatures(
         name=name, family=str(ep.family), design_size=float(ep.design_size),
         fea_seconds=fea_seconds(ep.solver_stats),
+        fea_load_per_cpu=float(ep.solver_stats.get("load_per_cpu", float("nan"))),
         t=np.asarray(ep.t, dtype=np.float64), incidence=Incidence.from_beams(ep.beams, J),
         joint_state=np.concatenate([jg, js], -1).astype(np.float32),
         beam_state=np.concatenate([bg, bs], -1).astype(np.float32),
