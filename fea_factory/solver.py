@@ -44,7 +44,8 @@ class SolverSettings:
     stabilize: bool = False
     stabilize_max_steps: int = 60
     stabilize_accept_mm: float = 0.1
-    jit_compile_args: tuple = ("-O3", "-march=native", "-g0", "-fno-math-errno", "-fno-trapping-math")  # as conf/solver/default.yaml
+    jit_compile_args: tuple = ("-O3", "-march=native", "-g0",  # as conf/solver/default.yaml
+                               "-fno-math-errno", "-fno-trapping-math")
 
     def __post_init__(self) -> None:
         checks = [

@@ -281,7 +281,7 @@ def split_paths(split: str, stored: dict[str, list[str]], data_dir: Path, source
     return design_paths([e for n in dict.fromkeys(names) for e in stored[n]], data_dir, config)
 
 
-BUSY_LOAD_PER_CPU = 1.25  # FEA on a busy machine: as `busy` for the rollout timings, half a thread over 2 CPUs (JOBS=2: ~1)
+BUSY_LOAD_PER_CPU = 1.25  # FEA on a busy machine: as `busy` for rollout timings, half a thread over 2 CPUs
 
 
 def fea_load_max(features) -> float:
