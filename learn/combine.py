@@ -34,6 +34,13 @@ def read_report(path: str | Path) -> dict:
     return json.loads(path.read_text())
 
 
+def fea_load_mean(reports: list[dict]) -> float | None:
+    """The design-weighted mean of the reports' FEA load per CPU, over those that recorded one (None if none did)."""
+    known = [(r["fea_load_per_cpu_mean"], r["n_designs"]) for r in reports
+             if r.get("fea_load_per_cpu_mean") is not None and np.isfinite(r["fea_load_per_cpu_mean"])]
+    return float(np.average([v for v, _ in known], weights=[n for _, n in known])) if known else None
+
+
 def combine(reports: list[dict]) -> dict:
     """One report over the union of the designs of `reports` (learn.evaluate report dicts)."""
     if len(reports) < 2:
@@ -63,8 +70,7 @@ def combine(reports: list[dict]) -> dict:
         "n_parameters": reports[0].get("n_parameters"),
         "timing_busy": any(bool(r.get("timing_busy")) for r in reports),
         "load_average": max((r["load_average"] for r in reports if r.get("load_average") is not None), default=None),
-        "fea_load_per_cpu_max": max((v for r in reports if (v := r.get("fea_load_per_cpu_max")) is not None
-                                     and np.isfinite(v)), default=None),
+        "fea_load_per_cpu_mean": fea_load_mean(reports),
         "cpus": reports[0].get("cpus"),
         "timing": "design-weighted means of the sources' timings (learn.evaluate: " + reports[0].get("timing", "") + ")",
         "sources": [{"data_dir": r["data_dir"], "split": r["split"], "n_designs": r["n_designs"],

@@ -41,7 +41,7 @@ NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
 # what only resuming a training reads: the optimiser's moments, a weight average's raw weights, the patience count
 RESUME_ONLY = ("optimizer", "trained_state_dict", "n_averaged", "bad_epochs")
 REPORT_FIGURES = ("n_designs", "rollout_ms_per_design", "rollout_ms_per_design_batched", "rollout_backend",
-                  "fea_s_per_episode", "fea_load_per_cpu_max", "speedup", "speedup_batched", "n_invalid", "threads",
+                  "fea_s_per_episode", "fea_load_per_cpu_mean", "speedup", "speedup_batched", "n_invalid", "threads",
                   "load_average")
 
 

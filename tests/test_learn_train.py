@@ -225,10 +225,10 @@ def test_a_welded_evaluation_is_never_worse_and_keeps_the_validity_of_the_blocks
 def test_fea_times_from_a_busy_machine_are_flagged_in_the_report():
     from types import SimpleNamespace
 
-    from learn.evaluate import BUSY_LOAD_PER_CPU, busy_note, fea_load_max
-    eps = [SimpleNamespace(fea_load_per_cpu=x) for x in (0.9, float("nan"), 1.1)]
-    assert fea_load_max(eps) == 1.1 and np.isnan(fea_load_max(eps[1:2]))  # episodes from before it was recorded
-    assert busy_note(1.1) == busy_note(float("nan")) == ""  # two jobs on two cores: ~1, not busy
+    from learn.evaluate import BUSY_LOAD_PER_CPU, busy_note, fea_load_mean
+    eps = [SimpleNamespace(fea_load_per_cpu=x) for x in (0.9, float("nan"), 1.5)]
+    assert fea_load_mean(eps) == pytest.approx(1.2) and np.isnan(fea_load_mean(eps[1:2]))  # nan: before it was kept
+    assert busy_note(1.2) == busy_note(float("nan")) == busy_note(None) == ""  # two jobs on two cores: ~1, not busy
     assert "busy machine: load 2.00 per CPU" in busy_note(2.0) and "overstated" in busy_note(BUSY_LOAD_PER_CPU + 0.01)
 
 
@@ -238,7 +238,7 @@ def test_evaluate_writes_the_report(trained, tmp_path):
                                            "timing_repeats=1"]))
     on_disk = json.loads((tmp_path / "report.json").read_text())
     for key in ("n_designs", "max_rel_error", "rollout_ms_per_design", "fea_s_per_episode", "speedup", "input_floor",
-                "fea_load_per_cpu_max"):
+                "fea_load_per_cpu_mean"):
         assert key in on_disk
     for key in ("median", "p95", "worst", "per_family"):
         assert key in on_disk["max_rel_error"]
@@ -468,9 +468,11 @@ def test_combine_pools_reports_of_one_model_over_the_union_of_designs(trained, d
     assert by_frame(older) is None and by_frame(uneven) is None  # a report before the FEA step; unequal frame counts
     busy_one = combine([{**parts["val"], "timing_busy": True, "load_average": 3.2}, parts["test"]])
     assert busy_one["timing_busy"] and busy_one["load_average"] >= 3.2  # one busy source makes the pooled timing busy
-    fea_busy = combine([{**parts["val"], "fea_load_per_cpu_max": 2.4}, {**parts["test"], "fea_load_per_cpu_max": None}])
-    assert fea_busy["fea_load_per_cpu_max"] == 2.4 and "busy machine: load 2.40" in markdown(fea_busy)
-    assert pooled["fea_load_per_cpu_max"] is None  # synthetic episodes record no load: nothing claimed
+    fea_busy = combine([{**parts["val"], "fea_load_per_cpu_mean": 2.4}, {**parts["test"], "fea_load_per_cpu_mean": None}])
+    assert fea_busy["fea_load_per_cpu_mean"] == 2.4 and "busy machine: load 2.40" in markdown(fea_busy)
+    both = combine([{**parts["val"], "fea_load_per_cpu_mean": 2.0}, {**parts["test"], "fea_load_per_cpu_mean": 1.0}])
+    assert both["fea_load_per_cpu_mean"] == pytest.approx(1.5)  # weighted by designs (one each here)
+    assert pooled["fea_load_per_cpu_mean"] is None  # synthetic episodes record no load: nothing claimed
     with pytest.raises(ValueError, match="more than once"):
         combine([parts["val"], parts["val+test"]])
     with pytest.raises(ValueError, match="differ in 'checkpoint'"):
