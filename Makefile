@@ -12,7 +12,7 @@ export OMPI_ALLOW_RUN_AS_ROOT=1
 export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset reference-data large-data validate fingerprint bench-fea stability bench-rollout tradeoff train evaluate reference-train finetune reference-evaluate publish record-data record record-status record-evaluate compare validity-calibration curves diagnose predict sweep learned-extremes clean
+.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset reference-data large-data validate fingerprint bench-fea stability bench-rollout tradeoff train evaluate reference-train finetune reference-evaluate publish record-data record record-pack record-status record-evaluate compare validity-calibration curves diagnose predict sweep learned-extremes clean
 
 help:  ## list the targets
 	@grep -E '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-12s %s\n", $$1, $$2}'
@@ -85,6 +85,9 @@ record-data:  ## every episode the record chain trains and is evaluated on (conf
 
 record:  ## the record model rebuilt on a fresh machine (conf/record.yaml): every seed's stages in order, side by side (one core each; SEED=k: one alone), each resumable and started once the data it needs exist, for at most BUDGET_MIN minutes (150; logs/record_s<k>.log; WAIT=1: a stage waits for its data, make record-data running beside, instead of exiting 4); again each session until finished; kept stages land in models/record_s<k>_<stage> (commit them)
 	$(PY) scripts/record.py train $(if $(SEED),--seed $(SEED)) --budget-min $(or $(BUDGET_MIN),150) $(if $(WAIT),--wait)
+
+record-pack:  ## the features of every episode record-data solved that packs/ lacks (learn.packs; ~0.1 MB an episode) -> new packs/<data dir>/part_<first>-<last>.h5: commit them, and a fresh machine's record-data solves only what they lack
+	$(PY) scripts/record.py pack
 
 record-status:  ## where the record chain stands: episodes generated, each seed's stages (new / paused / finished / kept), which stages' data are complete
 	$(PY) scripts/record.py status

@@ -7,7 +7,9 @@ Modules (each imports torch, numpy, h5py, meshio and data_schema only; never dol
     pca         per-term PCA and normalisers (torch buffers, saved with the model)
     gn          the GN block: interaction MLPs per directed edge, sum per receiver, update MLPs
     model       Simulator (encoding + SingleGN | DoubleGN core), G(t+1) = G(t) + dG
-    dataset     episode files -> split by episode -> mirror and rotation augmentation -> GraphSet batches
+    packs       feature packs: the EpisodeFeatures of many episodes in one HDF5 file (<data_dir>/features/*.h5),
+                read where the episode files are not (a fresh machine: the repository's packs/, scripts/record.py)
+    dataset     episode files (or their packs) -> split by episode -> mirror and rotation augmentation -> GraphSet batches
     metrics     multi-step loss, rollout errors relative to the design size
     train       python -m learn.train (conf/train.yaml); checkpoint: load/save (weights_only)
     rollout     rollout(model, episode, steps=10) -> Rollout (answers averaged over rotations / the mirror when the

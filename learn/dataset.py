@@ -13,6 +13,7 @@ from learn import frames
 from learn.features import BEAM_POINTS, JOINT_POINTS, EpisodeFeatures, extract
 from learn.graph import BEAM, JOINT, GraphIndex, disjoint_union
 from learn.model import Static
+from learn.packs import pack_dir, pack_paths, packed, read_pack
 from learn.symmetry import rotation_angles, rotation_z
 
 SPLITS = ("train", "val", "test")
@@ -20,10 +21,20 @@ FIT_BLOCK = 1024  # training copies per block of the PCA and normaliser fits (Si
 
 
 def episode_paths(data_dir: str | Path) -> list[Path]:
-    paths = sorted(Path(data_dir).glob("*.h5"))
-    if not paths:
-        raise FileNotFoundError(f"no episodes (*.h5) in {data_dir}; generate them with `make dataset`")
-    return paths
+    """Every episode of a data directory: its episode files (*.h5) and the episodes its feature packs hold
+    (learn.packs: <data_dir>/features/*.h5), as <data_dir>/<name> in name order (a packed one's file may not exist:
+    load_features reads it from its pack)."""
+    files = {p.name: p for p in Path(data_dir).glob("*.h5")}
+    names = sorted(files.keys() | packed(data_dir).keys())
+    if not names:
+        raise FileNotFoundError(f"no episodes (*.h5, or feature packs in {pack_dir(data_dir)}) in {data_dir}; "
+                                "generate them with `make dataset`")
+    return [Path(data_dir) / n for n in names]
+
+
+def has_episode(data_dir: str | Path, name: str) -> bool:
+    """Is episode `name` in data_dir: its file, or its features in one of the directory's packs?"""
+    return (Path(data_dir) / name).is_file() or name in packed(data_dir)
 
 
 def extra_dirs_checked(dirs, key: str = "train_extra_dirs", example: str = "make large-data") -> list[Path]:
@@ -46,13 +57,25 @@ def design_paths(names: list[str], data_dir: str | Path, config: dict | None = N
     extra = [Path(d) for d in (config or {}).get("train_extra_dirs") or []]
     out = []
     for n in names:
-        found = [d / n for d in extra if (d / n).is_file()] if not (Path(data_dir) / n).is_file() else []
+        found = [d / n for d in extra if has_episode(d, n)] if not has_episode(data_dir, n) else []
         out.append(found[0] if found else Path(data_dir) / n)
     return out
 
 
 def load_features(paths: list[Path]) -> list[EpisodeFeatures]:
-    return [extract(read_episode(p), name=p.name) for p in paths]
+    """Features of each episode path: extracted from its file where there is one (the source of truth), else read
+    from the packs of its directory (learn.packs); a path in neither is an error naming it."""
+    paths = [Path(p) for p in paths]
+    holders = {}
+    for p in paths:
+        if not p.is_file() and pack_paths(p.parent):
+            holders[p] = packed(p.parent).get(p.name)
+            if holders[p] is None:
+                raise FileNotFoundError(f"{p}: no such episode file, and not in the feature packs of {p.parent} "
+                                        f"({', '.join(q.name for q in pack_paths(p.parent))})")
+    from_packs = {h: read_pack(h) for h in dict.fromkeys(holders.values())}  # each pack read once
+    return [from_packs[holders[p]][p.name] if p in holders else extract(read_episode(p), name=p.name)
+            for p in paths]  # read_episode names a missing file
 
 
 def split_names(features: list[EpisodeFeatures], fractions: dict, seed: int) -> dict[str, list[str]]:

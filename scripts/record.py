@@ -1,7 +1,8 @@
 """The record model rebuilt from nothing, stage by stage (conf/record.yaml), so a fresh machine gets back to it by
 re-running the same commands session after session:
 
-    make record-data JOBS=2          # every episode conf/record.yaml lists (resumable; refusals stand)
+    make record-data JOBS=2          # every episode conf/record.yaml lists that no feature pack holds (resumable)
+    make record-pack                 # the features of what it solved -> packs/<data dir>/part_*.h5: commit them
     make record BUDGET_MIN=150       # every seed's stages side by side, one core each (SEED=0: one seed alone)
     make record-evaluate             # the pair's last stages on the 102 held-out designs, then models/<publish_as>
 
@@ -19,7 +20,10 @@ them within the budget instead of exiting 4, so one command can follow a generat
 `keep: <file>` is published when it finishes (learn.publish, without the optimiser: ~7 MB) as
 models/<run_root's name>_s<seed>_<stage>; commit it. A later stage starts from that directory when the run is gone,
 so a fresh machine (ten times, sessions 21-53) loses the data, not the training: it regenerates the data and goes on
-from the last kept stage. `status` prints where both seeds and the data stand.
+from the last kept stage. Since session 60 it need not lose the data either: `pack` keeps the features of every solved
+episode (learn.packs, ~0.1 MB an episode against ~0.9 MB and ~18 s of FEA) in the repository's packs/, and every
+command first puts them in place (<out>/features/), where learn reads them and `data` counts them as solved.
+`status` prints where both seeds and the data stand.
 """
 from __future__ import annotations
 
@@ -35,6 +39,7 @@ sys.path.insert(0, str(ROOT))
 from omegaconf import OmegaConf  # noqa: E402
 
 from fea_factory.generate import REFUSALS, WRITTEN, Manifest, episode_path  # noqa: E402
+from learn.packs import packed  # noqa: E402
 from learn.publish import CARD, is_published  # noqa: E402
 
 CONF = ROOT / "conf" / "record.yaml"
@@ -52,9 +57,52 @@ def conf(path: Path = CONF):
 
 def missing_episodes(entry, n: int | None = None) -> list[int]:
     """Indices of `entry`'s range (its first `n` only, if given) with no record of a written episode (solved, or a
-    whole file a killed generator left, recorded as skipped) or a refusal."""
+    whole file a killed generator left, recorded as skipped) or a refusal, in its manifest or its feature packs."""
     done = Manifest(ROOT / entry.out / "manifest.jsonl").episodes_with_status(*WRITTEN, *REFUSALS)
+    done |= {int(r["episode"]) for r in packed_records(ROOT / entry.out) if r.get("status") in (*WRITTEN, *REFUSALS)}
     return sorted(set(range(int(entry.start), int(entry.start) + int(entry.n if n is None else n))) - done)
+
+
+def packed_records(data_dir: Path) -> list[dict]:
+    """The manifest records kept with the feature packs of a data directory (learn.packs: <data_dir>/features/)."""
+    from learn.packs import pack_manifest, pack_paths
+
+    return [r for p in pack_paths(data_dir) for r in pack_manifest(p)]
+
+
+def repo_packs(cfg, entry) -> Path:
+    """Where the repository keeps the feature packs of a data entry: <pack_dir>/<the entry's directory name>."""
+    return ROOT / cfg.pack_dir / Path(str(entry.out)).name
+
+
+def restore(cfg) -> None:
+    """The repository's feature packs of every data entry put in its data directory (<out>/features/), so learn
+    reads them and missing_episodes counts them: what a session packed is not solved again on a fresh machine."""
+    import shutil
+
+    from data_schema import atomic
+    from learn.packs import pack_dir
+
+    if not cfg.get("pack_dir"):
+        return  # a record conf without packs
+    for e in cfg.data:
+        for src in sorted(repo_packs(cfg, e).glob("*.h5")):
+            dst = pack_dir(ROOT / e.out) / src.name
+            if not dst.exists() or dst.read_bytes() != src.read_bytes():
+                with atomic.replacing(dst) as tmp:
+                    shutil.copyfile(src, tmp)
+                print(f"[record] {e.out}: feature pack {src} in place", flush=True)
+
+
+def runs_of(indices: list[int]) -> list[tuple[int, int]]:
+    """Sorted indices as (start, n) runs of consecutive ones: [3, 4, 5, 9] -> [(3, 3), (9, 1)]."""
+    runs: list[list[int]] = []
+    for i in indices:
+        if runs and i == runs[-1][0] + runs[-1][1]:
+            runs[-1][1] += 1
+        else:
+            runs.append([i, 1])
+    return [(a, b) for a, b in runs]
 
 
 def needs(cfg, stage) -> dict[str, int]:
@@ -177,7 +225,7 @@ def designs_since(cfg, ckpt: dict) -> int:
     entries = {str(e.out): e for e in cfg.data}
     episodes = set()
     for d in dirs:
-        episodes |= {p.name for p in (ROOT / d).glob("*.h5")}
+        episodes |= {p.name for p in (ROOT / d).glob("*.h5")} | set(packed(ROOT / d) if (ROOT / d).is_dir() else ())
         if str(d) in entries:
             episodes |= {episode_path(Path(d), i).name for i in missing_episodes(entries[str(d)])}
     return len(episodes - named)
@@ -219,13 +267,54 @@ def minimum_of(epoch: float | None) -> float:
 
 
 def data(cfg, jobs: int) -> int:
+    """Every data entry's episodes that neither its manifest nor its feature packs hold, solved in runs of
+    consecutive indices (fea_factory.generate: resumable; refusals stand)."""
     for entry in cfg.data:
-        cmd = [sys.executable, "-m", "fea_factory.generate", f"n={entry.n}", f"start={entry.start}",
-               f"out={entry.out}", f"jobs={jobs}", "np=1", *entry.args]
-        print("[record]", " ".join(cmd), flush=True)
-        rc = subprocess.call(cmd, cwd=ROOT)
-        if rc:
-            return rc
+        missing = missing_episodes(entry)
+        if not missing:
+            print(f"[record] {entry.out}: all {entry.n} episodes solved, packed or refused", flush=True)
+        for start, n in runs_of(missing):
+            cmd = [sys.executable, "-m", "fea_factory.generate", f"n={n}", f"start={start}",
+                   f"out={entry.out}", f"jobs={jobs}", "np=1", *entry.args]
+            print("[record]", " ".join(cmd), flush=True)
+            rc = subprocess.call(cmd, cwd=ROOT)
+            if rc:
+                return rc
+    return 0
+
+
+def pack(cfg) -> int:
+    """Every data entry's solved episodes (and refusals) that no repository pack holds yet -> new feature packs of
+    at most cfg.pack_part episodes in <pack_dir>/<the entry's directory name>/part_<first>-<last>.h5 (earlier parts
+    are never rewritten: git keeps each once); then put in place (restore). Commit them."""
+    from learn.dataset import load_features
+    from learn.packs import pack_manifest, write_pack
+
+    if not cfg.get("pack_dir") or int(cfg.get("pack_part") or 0) < 1:
+        raise ValueError(f"pack: {CONF.name} needs pack_dir (where packs are kept) and pack_part >= 1 (episodes a part)")
+    for e in cfg.data:
+        out, held = ROOT / e.out, repo_packs(cfg, e)
+        packed_already = {int(r["episode"]) for p in sorted(held.glob("*.h5")) for r in pack_manifest(p)}
+        latest = {int(r["episode"]): r for r in Manifest(out / "manifest.jsonl").records()}  # the last record wins
+        todo = []
+        for i in range(int(e.start), int(e.start) + int(e.n)):
+            r = latest.get(i)
+            if i in packed_already or r is None or r.get("status") not in (*WRITTEN, *REFUSALS):
+                continue
+            if r["status"] in WRITTEN and not episode_path(out, i).is_file():
+                print(f"[record] {e.out}: episode {i} is on record as written but its file is gone; not packed "
+                      "(make record-data solves it again)", file=sys.stderr)
+                continue
+            todo.append(i)
+        for k in range(0, len(todo), int(cfg.pack_part)):
+            chunk = todo[k:k + int(cfg.pack_part)]
+            written = [i for i in chunk if latest[i]["status"] in WRITTEN]
+            features = load_features([episode_path(out, i) for i in written])
+            path = held / f"part_{chunk[0]:05d}-{chunk[-1]:05d}.h5"
+            write_pack(path, features, [latest[i] for i in chunk])
+            print(f"[record] {e.out}: {len(written)} episodes and {len(chunk) - len(written)} refusals -> "
+                  f"{path} ({path.stat().st_size / 2**20:.1f} MB)", flush=True)
+    restore(cfg)
     return 0
 
 
@@ -321,7 +410,10 @@ def epochs_done(run_dir: Path) -> str:
 
 def status(cfg) -> int:
     for e in cfg.data:
-        print(f"{e.out}: {int(e.n) - len(missing_episodes(e))} of {e.n} episodes done")
+        in_packs = len(packed_records(ROOT / e.out))
+        print(f"{e.out}: {int(e.n) - len(missing_episodes(e))} of {e.n} episodes done" + (
+            f" ({in_packs} of them in the repository's feature packs, {repo_packs(cfg, e)})"
+            if cfg.get("pack_dir") else ""))
     states = {(seed, s.name): state(cfg, seed, s) for seed in cfg.seeds for s in cfg.stages}  # each checkpoint once
     done = ("finished", "kept")
     for seed in cfg.seeds:
@@ -345,7 +437,7 @@ def status(cfg) -> int:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("what", choices=("data", "train", "status", "members"))
+    p.add_argument("what", choices=("data", "train", "status", "members", "pack"))
     p.add_argument("--seed", type=int, default=None, help="one seed's chain; default: every seed side by side")
     p.add_argument("--log-dir", type=Path, default=ROOT / "logs", help="side by side: record_s<seed>.log here")
     p.add_argument("--jobs", type=int, default=2)
@@ -359,8 +451,12 @@ def main(argv=None) -> int:
         p.error(f"--seed {a.seed}: conf/record.yaml's seeds are {list(cfg.seeds)}")
     if a.budget_min <= 0:
         p.error(f"--budget-min {a.budget_min}: must be > 0 minutes")
+    if a.what != "members":
+        restore(cfg)  # the repository's feature packs in place before anything counts or reads episodes
     if a.what == "data":
         return data(cfg, a.jobs)
+    if a.what == "pack":
+        return pack(cfg)
     if a.what == "train":
         if a.seed is None:
             return side_by_side(cfg, a.conf, [int(k) for k in cfg.seeds], a.budget_min, a.log_dir, a.wait)

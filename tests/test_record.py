@@ -4,6 +4,7 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from omegaconf import OmegaConf
@@ -241,3 +242,48 @@ def test_no_stage_starts_on_less_budget_than_one_epoch_of_it(chain, capsys):
     assert "budget spent before c (20 min left, 33 needed: one epoch of it)" in capsys.readouterr().out
     assert record.main(["train", "--seed", "0", "--conf", str(three), "--budget-min", "40"]) == 0
     assert torch.load(runs / "rec_s0" / "c" / "last.pt", weights_only=True)["finished"]
+
+
+def test_runs_of_consecutive_indices():
+    assert record.runs_of([]) == [] and record.runs_of([3, 4, 5, 9, 11, 12]) == [(3, 3), (9, 1), (11, 2)]
+
+
+def test_packed_episodes_are_not_solved_again_on_a_fresh_machine(tmp_path, monkeypatch, capsys):
+    """record pack: solved episodes and refusals -> parts of pack_part; a fresh machine (no data/) gets them in place,
+    counts them done, lists and reads them; record data solves only what no pack holds; a later pack adds a part."""
+    from learn.dataset import episode_paths, load_features
+
+    out = tmp_path / "data" / "ds"
+    for i in (0, 1, 3):
+        write_episode(record.episode_path(out, i), synthetic_episode(2, 2, 5, 3, 3, frames=3, seed=i))
+    write_manifest(out, {0: "ok", 1: "ok", 2: "contact", 3: "ok", 4: "error"})
+    cfg = {"data": [{"out": str(out), "start": 0, "n": 6, "args": []}], "stages": [], "seeds": [0],
+           "run_root": str(tmp_path / "runs"), "publish_as": "x", "pack_dir": str(tmp_path / "packs"), "pack_part": 2}
+    path = tmp_path / "record.yaml"
+    OmegaConf.save(OmegaConf.create(cfg), path)
+    before = {f.name: f for f in load_features(episode_paths(out))}
+    assert record.main(["pack", "--conf", str(path)]) == 0
+    parts = sorted(p.name for p in (tmp_path / "packs" / "ds").glob("*.h5"))
+    assert parts == ["part_00000-00001.h5", "part_00002-00003.h5"]  # the error (4) is not packed: it is retried
+
+    import shutil
+    shutil.rmtree(tmp_path / "data")  # a fresh machine: the repository's packs only
+    calls = []
+    monkeypatch.setattr(record.subprocess, "call", lambda cmd, cwd=None: calls.append(cmd) or 0)
+    assert record.main(["data", "--conf", str(path)]) == 0
+    assert [c[3:5] for c in calls] == [["n=2", "start=4"]]  # only 4 (an error) and 5 (never tried)
+    assert record.missing_episodes(OmegaConf.create(cfg).data[0]) == [4, 5]
+    after = load_features(episode_paths(out))
+    assert [f.name for f in after] == sorted(before)
+    for f in after:
+        assert np.array_equal(f.beam_state, before[f.name].beam_state) and f.fea_seconds == before[f.name].fea_seconds
+    capsys.readouterr()
+    assert record.main(["status", "--conf", str(path)]) == 0
+    assert f"4 of 6 episodes done (4 of them in the repository's feature packs, {tmp_path}/packs/ds)" in capsys.readouterr().out
+
+    write_episode(record.episode_path(out, 5), synthetic_episode(2, 2, 5, 3, 3, frames=3, seed=5))
+    with open(out / "manifest.jsonl", "a") as f:
+        f.write(json.dumps({"episode": 5, "status": "ok"}) + "\n")
+    assert record.main(["pack", "--conf", str(path)]) == 0  # only the new episode: a new part, old parts untouched
+    assert sorted(p.name for p in (tmp_path / "packs" / "ds").glob("*.h5")) == [*parts, "part_00005-00005.h5"]
+    assert record.missing_episodes(OmegaConf.create(cfg).data[0]) == [4]
