@@ -30,6 +30,7 @@ import h5py
 import numpy as np
 
 from data_schema import atomic
+from learn.conditions import PHYSICS_KEYS
 from learn.features import BEAM_POINTS, JOINT_POINTS, EpisodeFeatures
 from learn.graph import BEAM, JOINT, Incidence
 
@@ -47,12 +48,14 @@ class PackError(ValueError):
 
 
 def layout() -> dict:
-    """What a pack's arrays mean: the block terms' field names and sizes and the rebuilt points, in order."""
+    """What a pack's arrays mean: the block terms' field names and sizes, the rebuilt points in order, and the config
+    entries its conditions were read from (learn.conditions)."""
     def block(b):
         return {"geometry": b.geometry.names(), "stress": b.stress.names(), "bc": b.bc.names(),
                 "state_size": int(b.state_size)}
     return {"extract_version": EXTRACT_VERSION, "joint": block(JOINT), "beam": block(BEAM),
-            "joint_points": [p[0] for p in JOINT_POINTS], "beam_points": [p[0] for p in BEAM_POINTS]}
+            "joint_points": [p[0] for p in JOINT_POINTS], "beam_points": [p[0] for p in BEAM_POINTS],
+            "physics_keys": list(PHYSICS_KEYS)}  # the conditions kept of each episode's config
 
 
 def pack_dir(data_dir: str | os.PathLike) -> Path:
@@ -111,8 +114,9 @@ def _checked(h5: h5py.File, path: Path) -> None:
     made = json.loads(h5.attrs["layout"])
     if made != layout():
         differ = sorted(k for k in set(made) | set(layout()) if made.get(k) != layout().get(k))
-        raise PackError(f"{path}: made with another feature layout (differs in {differ}); extract its episodes "
-                        f"again (make record-pack) or solve them again (make record-data)")
+        raise PackError(f"{path}: made with another feature layout (differs in {differ}); remove it, then pack its "
+                        f"episodes again where their files are (make record-pack) or solve them again (make "
+                        f"record-data)")
 
 
 def pack_names(path: str | os.PathLike) -> list[str]:

@@ -113,3 +113,18 @@ def test_training_on_the_packs_alone_is_training_on_the_episodes(tmp_path):
     for a, b in zip(ckpts[0]["history"], ckpts[1]["history"]):
         assert a["train_loss"] == b["train_loss"] and a["val_loss"] == b["val_loss"]
     assert runs[0]["best"] == runs[1]["best"]
+
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("part", sorted(REPO.glob("packs/*/*.h5")), ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_the_repository_packs_read_with_this_code(part):
+    """Every committed part reads as this code's features (its layout and EXTRACT_VERSION), each of its episodes a
+    design of finite states whose manifest record says it was solved: a change to learn.features that would make
+    them unreadable fails here, not on a fresh machine."""
+    features = read_pack(part)
+    solved = {f"episode_{int(r['episode']):05d}.h5" for r in pack_manifest(part) if r["status"] in ("ok", "skipped")}
+    assert set(features) == solved
+    for f in features.values():
+        assert np.isfinite(f.joint_state).all() and np.isfinite(f.beam_state).all() and f.design_size > 0
