@@ -80,7 +80,7 @@ publish:  ## keep a trained model in the repository: CKPT (or CKPT='[a.pt,b.pt]'
 	@test -n "$(CKPT)" -a -n "$(NAME)" || { echo "make publish: CKPT=runs/<run>/best.pt (or '[a.pt,b.pt]') and NAME=<name> are required" >&2; exit 2; }
 	$(PY) -m learn.publish "checkpoints=$(CKPT)" name=$(NAME) $(if $(REPORT),report=$(REPORT)) $(ARGS)
 
-record-data:  ## every episode the record chain trains and is evaluated on (conf/record.yaml: ds_heldout 50, ds_default 800, ds_large 700, ds_val 100; ~6 h on 2 cores) that no feature pack in packs/ holds (put in place first); JOBS=2; resumable
+record-data:  ## every episode the record chain trains and is evaluated on (conf/record.yaml: ds_heldout 50, ds_default 800, ds_large 700, ds_val 100; ~6 h on 2 cores) that no feature pack in packs/ holds (put in place first), packed every 200 as solved (commit packs/); JOBS=2; resumable
 	$(PY) scripts/record.py data --jobs $(JOBS)
 
 record:  ## the record model rebuilt on a fresh machine (conf/record.yaml): every seed's stages in order, side by side (one core each; SEED=k: one alone), each resumable and started once the data it needs exist, for at most BUDGET_MIN minutes (150; logs/record_s<k>.log; WAIT=1: a stage waits for its data, make record-data running beside, instead of exiting 4); again each session until finished; kept stages land in models/record_s<k>_<stage> (commit them)

@@ -268,18 +268,24 @@ def minimum_of(epoch: float | None) -> float:
 
 def data(cfg, jobs: int) -> int:
     """Every data entry's episodes that neither its manifest nor its feature packs hold, solved in runs of
-    consecutive indices (fea_factory.generate: resumable; refusals stand)."""
+    consecutive indices (fea_factory.generate: resumable; refusals stand), at most pack_part at a time, each batch
+    packed as soon as it is solved (`pack`: a session that ends mid-entry leaves at most one batch unpacked)."""
+    step = int(cfg.get("pack_part") or 0) if cfg.get("pack_dir") else 0
     for entry in cfg.data:
         missing = missing_episodes(entry)
         if not missing:
             print(f"[record] {entry.out}: all {entry.n} episodes solved, packed or refused", flush=True)
         for start, n in runs_of(missing):
-            cmd = [sys.executable, "-m", "fea_factory.generate", f"n={n}", f"start={start}",
-                   f"out={entry.out}", f"jobs={jobs}", "np=1", *entry.args]
-            print("[record]", " ".join(cmd), flush=True)
-            rc = subprocess.call(cmd, cwd=ROOT)
-            if rc:
-                return rc
+            for a in range(start, start + n, step or n):
+                b = min(start + n, a + (step or n))
+                cmd = [sys.executable, "-m", "fea_factory.generate", f"n={b - a}", f"start={a}",
+                       f"out={entry.out}", f"jobs={jobs}", "np=1", *entry.args]
+                print("[record]", " ".join(cmd), flush=True)
+                rc = subprocess.call(cmd, cwd=ROOT)
+                if step:
+                    pack(cfg)
+                if rc:
+                    return rc
     return 0
 
 

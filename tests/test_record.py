@@ -287,3 +287,36 @@ def test_packed_episodes_are_not_solved_again_on_a_fresh_machine(tmp_path, monke
     assert record.main(["pack", "--conf", str(path)]) == 0  # only the new episode: a new part, old parts untouched
     assert sorted(p.name for p in (tmp_path / "packs" / "ds").glob("*.h5")) == [*parts, "part_00005-00005.h5"]
     assert record.missing_episodes(OmegaConf.create(cfg).data[0]) == [4]
+
+
+def test_record_data_packs_each_batch_as_soon_as_it_is_solved(tmp_path, monkeypatch):
+    """pack_part 2 over 5 new episodes: the generator is asked for [0, 2), [2, 4), [4, 5) and each batch is packed
+    before the next starts; a generator that fails mid-batch leaves what it solved packed and the exit code."""
+    out = tmp_path / "data" / "ds"
+    cfg = {"data": [{"out": str(out), "start": 0, "n": 5, "args": []}], "stages": [], "seeds": [0],
+           "run_root": str(tmp_path / "runs"), "publish_as": "x", "pack_dir": str(tmp_path / "packs"), "pack_part": 2}
+    path = tmp_path / "record.yaml"
+    OmegaConf.save(OmegaConf.create(cfg), path)
+    seen = []
+
+    def generator(cmd, cwd=None):  # solves its range (synthetic episodes), the last one failing on request
+        n, start = (int(a.split("=")[1]) for a in cmd[3:5])
+        seen.append((start, n, sorted(p.name for p in (tmp_path / "packs" / "ds").glob("*.h5"))))
+        for i in range(start, start + n):
+            if i == fail_at:
+                return 1
+            write_episode(record.episode_path(out, i), synthetic_episode(2, 2, 5, 3, 3, frames=3, seed=i))
+            with open(out / "manifest.jsonl", "a") as f:
+                f.write(json.dumps({"episode": i, "status": "ok"}) + "\n")
+        return 0
+
+    monkeypatch.setattr(record.subprocess, "call", generator)
+    fail_at = 3
+    assert record.main(["data", "--conf", str(path)]) == 1
+    assert seen == [(0, 2, []), (2, 2, ["part_00000-00001.h5"])]
+    assert sorted(p.name for p in (tmp_path / "packs" / "ds").glob("*.h5")) == ["part_00000-00001.h5",
+                                                                                "part_00002-00002.h5"]
+    fail_at, seen[:] = None, []
+    assert record.main(["data", "--conf", str(path)]) == 0
+    assert [s[:2] for s in seen] == [(3, 2)]
+    assert sorted(p.name for p in (tmp_path / "packs" / "ds").glob("*.h5"))[-1] == "part_00003-00004.h5"
