@@ -71,11 +71,21 @@ def check(path: str | os.PathLike) -> None:
 
 
 def episode_files(paths: Iterable[str | os.PathLike]) -> list[Path]:
-    """Files given, plus every *.h5 file under the directories given (recursively, sorted)."""
+    """Files given, plus every *.h5 file under the directories given (recursively, sorted) that does not declare
+    itself another format (a root `format` attribute and no schema version: learn's feature packs, kept in a data
+    directory's features/)."""
     out: list[Path] = []
     for p in map(Path, paths):
-        out += sorted(p.rglob("*" + EPISODE_SUFFIX)) if p.is_dir() else [p]
+        out += [f for f in sorted(p.rglob("*" + EPISODE_SUFFIX)) if not _another_format(f)] if p.is_dir() else [p]
     return out
+
+
+def _another_format(path: Path) -> bool:
+    try:
+        with h5py.File(path, "r") as h5:
+            return "format" in h5.attrs and SCHEMA_VERSION_ATTR not in h5.attrs
+    except OSError:
+        return False  # not readable as HDF5: an episode file gone wrong, for the validator to report
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -119,6 +119,19 @@ def test_episode_files_recurses_into_directories(tmp_path):
         tmp_path / "a/b/y.h5", tmp_path / "a/x.h5", tmp_path / "z.h5"]
 
 
+def test_episode_files_leave_out_files_of_another_declared_format(tmp_path, good):
+    """A data directory's features/ holds learn's feature packs (HDF5 with a root `format` attribute, no schema
+    version): not episodes, so validating or fingerprinting the directory does not fail on them."""
+    import shutil
+    d = tmp_path / "data"
+    (d / "features").mkdir(parents=True)
+    shutil.copy(good, d / "episode_00000.h5")
+    with h5py.File(d / "features" / "part.h5", "w") as h5:
+        h5.attrs["format"] = "morphsim.features"
+    (d / "features" / "broken.h5").write_text("")  # unreadable: kept, for the validator to report
+    assert episode_files([d]) == [d / "episode_00000.h5", d / "features" / "broken.h5"]
+
+
 def _cli(*paths) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "data_schema.validate", *map(str, paths)], cwd=REPO,
                           capture_output=True, text=True, timeout=120)
