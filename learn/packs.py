@@ -67,12 +67,19 @@ def pack_paths(data_dir: str | os.PathLike) -> list[Path]:
 
 
 def write_pack(path: str | os.PathLike, features: list[EpisodeFeatures], manifest: Iterable[dict] = ()) -> Path:
-    """`features` (distinct names) and their manifest records -> the pack at `path`, written atomically."""
+    """`features` (distinct names) and their manifest records -> the pack at `path`, written atomically. A pack of
+    refusals only (no features, some records) keeps those refusals."""
     names = [f.name for f in features]
-    if not names or len(set(names)) != len(names) or not all(names):
-        raise PackError(f"write_pack({path}): needs episodes with distinct, non-empty names; got {names[:5]}...")
-    cols: dict[str, list[np.ndarray]] = {k: [] for k in (
-        "t", "beams", "joint_state", "beam_state", "joint_bc", "beam_bc", "point_index", "nodes", "node_points")}
+    manifest = list(manifest)
+    if (not names and not manifest) or len(set(names)) != len(names) or not all(names):
+        raise PackError(f"write_pack({path}): needs episodes with distinct, non-empty names (or refusals); got "
+                        f"{names[:5]}...")
+    # every column starts with its empty [0, ...] block: a pack of refusals only has the columns' shapes too
+    cols: dict[str, list[np.ndarray]] = {k: [np.zeros((0, *shape), dtype)] for k, shape, dtype in (
+        ("t", (), np.float64), ("beams", (2,), np.int64), ("joint_state", (JOINT.state_size,), np.float32),
+        ("beam_state", (BEAM.state_size,), np.float32), ("joint_bc", (JOINT.bc.size,), np.float32),
+        ("beam_bc", (BEAM.bc.size,), np.float32), ("point_index", (), np.int32), ("nodes", (), np.int64),
+        ("node_points", (3,), np.float32))}
     counts, meta, origin = [], [], []
     for f in features:
         F, J, B, P = f.n_frames, f.incidence.n_joints, f.incidence.n_beams, len(f.point_nodes)
@@ -98,8 +105,8 @@ def write_pack(path: str | os.PathLike, features: list[EpisodeFeatures], manifes
                         created=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"))
         h5.create_dataset("names", data=np.array(names, dtype=object), dtype=h5py.string_dtype())
         h5.create_dataset("meta", data=np.array(meta, dtype=object), dtype=h5py.string_dtype())
-        h5.create_dataset("counts", data=np.asarray(counts, np.int64))
-        h5.create_dataset("origin", data=np.asarray(origin, np.float64))
+        h5.create_dataset("counts", data=np.asarray(counts, np.int64).reshape(-1, 5))
+        h5.create_dataset("origin", data=np.asarray(origin, np.float64).reshape(-1, 3))
         for k, parts in cols.items():
             h5.create_dataset(k, data=np.concatenate(parts), **COMPRESSION)
         h5.create_dataset("manifest", data="\n".join(json.dumps(r, sort_keys=True) for r in manifest),
@@ -129,7 +136,11 @@ def pack_names(path: str | os.PathLike) -> list[str]:
 def _pack_names(path: str, mtime_ns: int, size: int) -> tuple[str, ...]:
     with h5py.File(path, "r") as h5:
         _checked(h5, Path(path))
-        return tuple(n.decode() if isinstance(n, bytes) else str(n) for n in h5["names"][()])
+        return tuple(_names(h5))
+
+
+def _names(h5: h5py.File) -> list[str]:
+    return [n.decode() if isinstance(n, bytes) else str(n) for n in h5["names"][()]]
 
 
 def pack_manifest(path: str | os.PathLike) -> list[dict]:
@@ -146,7 +157,7 @@ def read_pack(path: str | os.PathLike) -> dict[str, EpisodeFeatures]:
     (fresh arrays on every call: the caller may change them)."""
     with h5py.File(path, "r") as h5:
         _checked(h5, Path(path))
-        names = [n.decode() if isinstance(n, bytes) else str(n) for n in h5["names"][()]]
+        names = _names(h5)
         a = {k: h5[k][()] for k in ("counts", "origin", "meta", "t", "beams", "joint_state", "beam_state",
                                     "joint_bc", "beam_bc", "point_index", "nodes", "node_points")}
     counts = a["counts"]

@@ -128,3 +128,13 @@ def test_the_repository_packs_read_with_this_code(part):
     assert set(features) == solved
     for f in features.values():
         assert np.isfinite(f.joint_state).all() and np.isfinite(f.beam_state).all() and f.design_size > 0
+
+
+def test_a_pack_of_refusals_only_keeps_them_and_holds_no_episodes(tmp_path):
+    """A batch the solver refused entirely (contact, divergence) is packed too, so a fresh machine does not solve it
+    again; a pack with neither episodes nor records is refused."""
+    records = [{"episode": 7, "status": "contact"}]
+    pack = write_pack(tmp_path / "p.h5", [], records)
+    assert pack_names(pack) == [] and read_pack(pack) == {} and pack_manifest(pack) == records
+    with pytest.raises(PackError, match="or refusals"):
+        write_pack(tmp_path / "q.h5", [], [])
