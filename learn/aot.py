@@ -15,8 +15,11 @@ Backend "aot_tuned" compiles the same step with inductor's max_autotune: every m
 machine against inductor's own C++ micro-kernel for its shape and the faster kept. A step's products are small
 (9-24 rows by 4-256 columns for one 3 x 3 design), where a library call's dispatch (~5 us) outweighs the arithmetic,
 so the micro-kernels win most of them (0.4-1.5 us against 5-6 us); a two-pass pair's rollout took x0.87-0.96 of aot's
-on an idle 2-core EPYC (session 51, scripts/bench_rollout.py). Compiling takes ~3-5x longer (each candidate is compiled
-and timed), once per model and shapes like every package, kept apart from the untuned ones.
+on an idle 2-core EPYC (session 51, scripts/bench_rollout.py). Since session 61 it also freezes the weights (inductor's
+`freezing`): they are constants of the package, laid out once at compile time in the micro-kernels' blocks, where an
+unfrozen product copies its weight matrix into those blocks on every call (MKL's sgemm did the same: in a profile of
+an aot step, copying the weights took 22 % of the time and the multiply-adds 18 %). Compiling takes ~3-5x longer (each
+candidate is compiled and timed), once per model and shapes like every package, kept apart from the untuned ones.
 """
 from __future__ import annotations
 
@@ -30,12 +33,14 @@ from pathlib import Path
 
 import torch
 from torch import nn
+from torch.export.graph_signature import InputKind, InputSpec
 
 from learn.graph import GraphIndex
 from learn.model import Simulator, Static
 from learn.stiffness import Layout
 
-AOT_BACKENDS = {"aot": {}, "aot_tuned": {"max_autotune": True, "autotune_num_choices_displayed": 0}}  # inductor options
+AOT_BACKENDS = {"aot": {},  # inductor options of each backend (part of a tuned package's key)
+                "aot_tuned": {"max_autotune": True, "freezing": True, "autotune_num_choices_displayed": 0}}
 BACKENDS = ("torchscript", *AOT_BACKENDS)  # rollout_backend: how learn.rollout.compile_rollout compiles a rollout
 
 
@@ -162,12 +167,13 @@ class AotSteps:
     def key(self, model: Simulator, inputs: list[torch.Tensor], union: bool, n_graphs: int | None,
             sizes: tuple[int, int] | None) -> tuple:
         """A package's key: the model's fingerprint, the machine, the graph counts, every input's shape and dtype,
-        and the backend when tuned (aot's keys are those written before aot_tuned existed)."""
+        and when tuned the backend and its inductor options (aot's keys are those written before aot_tuned existed;
+        an aot_tuned package compiled with other options, e.g. unfrozen before session 61, is not taken for one)."""
         if model not in self.fingerprints:
             self.fingerprints[model] = fingerprint(model)
         shapes = tuple((tuple(x.shape), str(x.dtype)) for x in inputs)
         key = (self.fingerprints[model], self.machine, union, n_graphs, sizes, bool(model.span_input), shapes)
-        return key if self.backend == "aot" else key + (self.backend,)
+        return key if self.backend == "aot" else key + (self.backend, json.dumps(self.options, sort_keys=True))
 
     def package_path(self, key) -> Path:
         """Where the package of a key (model fingerprint, machine, graph counts, input shapes) is kept."""
@@ -183,6 +189,8 @@ class AotSteps:
             example = tuple(x.detach().clone() for x in inputs)
             with torch.inference_mode(False), torch.no_grad():
                 exported = torch.export.export(module, example)
+                if self.options.get("freezing"):
+                    exported = constants_as_buffers(exported)
                 fd, tmp = tempfile.mkstemp(suffix=".pt2", dir=self.cache)
                 os.close(fd)
                 try:
@@ -194,4 +202,35 @@ class AotSteps:
                     if os.path.exists(tmp):
                         os.unlink(tmp)
             self.compiled += 1
-        return torch._inductor.aoti_load_package(str(path))
+        return direct_call(torch._inductor.aoti_load_package(str(path)), len(inputs))
+
+
+def constants_as_buffers(exported: torch.export.ExportedProgram) -> torch.export.ExportedProgram:
+    """The program with its lifted tensor constants (tensors a step makes from module-level ones, e.g.
+    learn.stiffness's maps) turned into buffers, in place. Inductor's freezing unlifts each use of a constant as its
+    own attribute read, and its constant folding, dropping a read it folded away, deletes the attribute the others
+    still read ("references nonexistent attribute _tensor_constant0", torch 2.13); buffers are frozen like weights."""
+    specs = []
+    for spec in exported.graph_signature.input_specs:
+        if spec.kind == InputKind.CONSTANT_TENSOR:
+            exported.state_dict[spec.target] = exported.constants.pop(spec.target)
+            spec = InputSpec(kind=InputKind.BUFFER, arg=spec.arg, target=spec.target, persistent=True)
+        specs.append(spec)
+    exported.graph_signature.input_specs[:] = specs
+    return exported
+
+
+def direct_call(package, n_inputs: int) -> Callable:
+    """A loaded package called with its flat list of input tensors, as its own __call__ ends up doing after parsing
+    its input and output tree specs from JSON and flattening the arguments on every call (~0.16 ms, ~7 % of a step);
+    the package's own __call__ when the loader is not there or its spec is not n_inputs tensors in, two out."""
+    loader = getattr(package, "loader", None)
+    try:
+        from torch.utils import _pytree as pytree
+        in_spec, out_spec = (pytree.treespec_loads(s) for s in loader.get_call_spec())
+        plain = in_spec.num_leaves == n_inputs and out_spec.num_leaves == 2
+    except (AttributeError, TypeError, ValueError, RuntimeError):  # another torch's package: its own call
+        plain = False
+    if not plain:
+        return package
+    return lambda *inputs: loader.boxed_run(list(inputs))

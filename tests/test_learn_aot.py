@@ -9,7 +9,9 @@ import pytest
 import torch
 
 from data_schema.testing import synthetic_episode
-from learn.aot import AotSteps, backend_checked, fingerprint, machine_key
+from torch.export.graph_signature import InputKind
+
+from learn.aot import AotSteps, backend_checked, constants_as_buffers, fingerprint, machine_key
 from learn.dataset import GraphSet
 from learn.ensemble import Ensemble
 from learn.features import extract, rebuild_all_points
@@ -109,16 +111,42 @@ def test_a_package_is_keyed_by_the_weights_and_bad_backends_are_refused(features
 
 
 def test_a_tuned_package_is_kept_apart_from_an_untuned_one(features):
-    """aot_tuned's packages hold other machine code (kernels picked by timing) than aot's for the same model and
-    shapes: their keys, hence their files, differ, and aot's keys are those written before aot_tuned existed."""
+    """aot_tuned's packages hold other machine code (kernels picked by timing, weights frozen) than aot's for the
+    same model and shapes: their keys, hence their files, differ, aot's keys are those written before aot_tuned
+    existed, and a tuned key names its inductor options (an unfrozen package of session 51-60 is not taken)."""
     model = small_model(features)
     inputs = [x.contiguous() for x in graph_inputs(features[0])]
     aot, tuned = (AotSteps(log=None, backend=b) for b in ("aot", "aot_tuned"))
     key = aot.key(model, inputs, False, 1, None)
     assert key == (fingerprint(model), machine_key(), False, 1, None, False,
                    tuple((tuple(x.shape), str(x.dtype)) for x in inputs))
-    assert tuned.key(model, inputs, False, 1, None) == key + ("aot_tuned",)
-    assert aot.package_path(key) != tuned.package_path(key + ("aot_tuned",))
+    options = '{"autotune_num_choices_displayed": 0, "freezing": true, "max_autotune": true}'
+    assert tuned.key(model, inputs, False, 1, None) == key + ("aot_tuned", options)
+    assert aot.package_path(key) != tuned.package_path(key + ("aot_tuned", options))
+    assert tuned.package_path(key + ("aot_tuned",)) != tuned.package_path(key + ("aot_tuned", options))
+
+
+class _Scaled(torch.nn.Module):
+    """x times a module-level tensor, used twice: torch.export lifts it as a constant read in two places."""
+
+    def forward(self, x):
+        return x * _GAINS + _GAINS.sum()
+
+
+_GAINS = torch.tensor([1.0, 2.0, 3.0])
+
+
+def test_constants_become_buffers_that_freezing_can_fold():
+    """Inductor's freezing fails on a program whose lifted constant is read twice (its constant folding deletes the
+    attribute after folding one read away, torch 2.13); as a buffer the constant is frozen like a weight, and the
+    program computes what it did."""
+    x = torch.tensor([[1.0, -1.0, 0.5]])
+    exported = torch.export.export(_Scaled(), (x,))
+    assert exported.constants
+    converted = constants_as_buffers(exported)
+    assert not converted.constants and len(converted.state_dict) == 1
+    assert [s.kind for s in converted.graph_signature.input_specs] == [InputKind.BUFFER, InputKind.USER_INPUT]
+    torch.testing.assert_close(converted.module()(x), _Scaled()(x), rtol=0, atol=0)
 
 
 @pytest.mark.slow
