@@ -132,6 +132,8 @@ class AotSteps:
         self.log = log or (lambda _: None)
         self.runners: dict = {}
         self.fingerprints: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # model -> fingerprint
+        self.seen: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # model -> {input signature: runner}
+        self.options_key = json.dumps(self.options, sort_keys=True)
         self.compiled = 0  # packages compiled (not found in the cache) by this object
         self.machine = machine_key()
 
@@ -156,10 +158,14 @@ class AotSteps:
                 inputs.append(static.beam_spans())
             # contiguous, as when compiled: a package reads its inputs at the strides it was compiled with
             inputs = [x.contiguous() for x in inputs]
-            key = self.key(model, inputs, union, g.n_graphs, sizes)
-            if key not in self.runners:
-                self.runners[key] = self._runner(model, key, inputs, union, g.n_graphs, sizes)
-            out = self.runners[key](*inputs)
+            seen = self.seen.setdefault(model, {})  # the same as key's shapes, without formatting them every step
+            signature = (union, g.n_graphs, sizes, *((x.shape, x.dtype) for x in inputs))
+            if signature not in seen:
+                key = self.key(model, inputs, union, g.n_graphs, sizes)
+                if key not in self.runners:
+                    self.runners[key] = self._runner(model, key, inputs, union, g.n_graphs, sizes)
+                seen[signature] = self.runners[key]
+            out = seen[signature](*inputs)
             return out[0], out[1]
 
         return step
@@ -173,7 +179,7 @@ class AotSteps:
             self.fingerprints[model] = fingerprint(model)
         shapes = tuple((tuple(x.shape), str(x.dtype)) for x in inputs)
         key = (self.fingerprints[model], self.machine, union, n_graphs, sizes, bool(model.span_input), shapes)
-        return key if self.backend == "aot" else key + (self.backend, json.dumps(self.options, sort_keys=True))
+        return key if self.backend == "aot" else key + (self.backend, self.options_key)
 
     def package_path(self, key) -> Path:
         """Where the package of a key (model fingerprint, machine, graph counts, input shapes) is kept."""
