@@ -104,17 +104,34 @@ def machine_key() -> str:
     return "|".join([platform.machine(), cpu or platform.processor(), torch.backends.cpu.get_cpu_capability()])
 
 
+STEP_MODULES = ("aot", "model", "gn", "stiffness", "frames", "kinematics", "pca", "graph", "symmetry", "checks")
+
+
+def step_code() -> bytes:
+    """sha256 of the source of every learn module a compiled step is made of (STEP_MODULES): a package compiled
+    before a change to how a step computes is not taken for one of the changed code (session 61's float64 products
+    were such a change, under the same weights)."""
+    h = hashlib.sha256()
+    for name in STEP_MODULES:
+        h.update((Path(__file__).parent / f"{name}.py").read_bytes())
+    return h.digest()
+
+
 def fingerprint(model: Simulator) -> str:
     """sha256 of a model's args (but the rollout_* settings of its answers, which the step does not read), every
-    parameter and buffer (name, dtype, shape, bytes) and the torch version: two models with the same fingerprint
-    compute the same step."""
+    parameter and buffer (name, dtype, shape, bytes), the torch version and the step's code (step_code): two models
+    with the same fingerprint compute the same step."""
     args = {k: v for k, v in model.args.items() if not k.startswith("rollout_")}
     h = hashlib.sha256(json.dumps(args, sort_keys=True, default=str).encode())
     h.update(torch.__version__.encode())
+    h.update(_STEP_CODE)
     for name, x in model.state_dict().items():
         h.update(f"{name}|{x.dtype}|{tuple(x.shape)}".encode())
         h.update(x.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
     return h.hexdigest()
+
+
+_STEP_CODE = step_code()  # read once: the code this process computes steps with
 
 
 class AotSteps:

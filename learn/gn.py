@@ -51,6 +51,20 @@ def sum_to(messages: torch.Tensor, index: torch.Tensor, n: int) -> torch.Tensor:
     return out.index_add_(-2, index, messages)
 
 
+def summed_over_edges(m: nn.Sequential, first: torch.Tensor, index: torch.Tensor, n: int) -> torch.Tensor:
+    """sum_to(m's output on every edge, index, n), given m's first layer on every edge (`first`, before its
+    activation). When m ends in a Linear after hidden layers, the sum goes before that layer:
+    sum_e (W h_e + b) = W (sum_e h_e) + n_r b, so the last layer runs once per receiver (9 joints, 12 beams of a 3 x 3
+    grid) instead of once per directed edge (24); the same sum to float32 rounding. Otherwise (a LayerNorm after the
+    last layer, no hidden layer) every edge's output is made and summed."""
+    last = m[-1]
+    if len(m) < 3 or not isinstance(last, nn.Linear):
+        return sum_to(m[1:](first), index, n)
+    hidden = sum_to(m[1:-1](first), index, n)  # [..., n, H]
+    count = sum_to(first.new_ones(first.shape[-2], 1), index, n)  # [n, 1] edges per receiver
+    return last(hidden) + (count - 1.0) * last.bias
+
+
 def design_means(x: torch.Tensor, graph: torch.Tensor | None, n_graphs: int) -> torch.Tensor:
     """[..., n, H] rows -> [..., n_graphs, H] the mean of each design's rows (graph: the design of every row in a
     disjoint union; None: all rows are one design)."""
@@ -107,7 +121,22 @@ class GNBlock(nn.Module):
     def interactions(self, joints: torch.Tensor, beams: torch.Tensor, edges: torch.Tensor,
                      g: GraphIndex) -> tuple[torch.Tensor, torch.Tensor]:
         """f_I-joint(pair) and f_I-beam(pair) of every directed edge, pair = cat(X_beam, X_sender, X_receiver,
-        X_edge). Their first layers are linear in the pair, so each is applied to every beam and joint once and the
+        X_edge) (received sums them without making them)."""
+        joint_first, beam_first = self.first_layers(joints, beams, edges, g)
+        return self.joint_interaction[1:](joint_first), self.beam_interaction[1:](beam_first)
+
+    def received(self, joints: torch.Tensor, beams: torch.Tensor, edges: torch.Tensor,
+                 g: GraphIndex) -> tuple[torch.Tensor, torch.Tensor]:
+        """The interactions summed per receiver: f_I-joint over each joint's incoming edges [..., J, latent],
+        f_I-beam over each beam's two edges [..., B, latent] (summed_over_edges)."""
+        joint_first, beam_first = self.first_layers(joints, beams, edges, g)
+        return (summed_over_edges(self.joint_interaction, joint_first, g.receivers, joints.shape[-2]),
+                summed_over_edges(self.beam_interaction, beam_first, g.edge_beam, beams.shape[-2]))
+
+    def first_layers(self, joints: torch.Tensor, beams: torch.Tensor, edges: torch.Tensor,
+                     g: GraphIndex) -> tuple[torch.Tensor, torch.Tensor]:
+        """The first layers of f_I-joint and f_I-beam (before their activation) on every directed edge's pair. They
+        are linear in the pair, so each is applied to every beam and joint once and the
         products gathered per edge: W pair = W_b X_beam + W_s X_sender + W_r X_receiver + W_e X_edge, the same sum
         with about half the multiply-adds (a graph has twice as many directed edges as beams and 3x as many as
         joints); the two MLPs share those products as one matrix."""
@@ -121,14 +150,12 @@ class GNBlock(nn.Module):
         hidden = ((beams @ w_beam.T).index_select(-2, g.edge_beam) + as_sender.index_select(-2, g.senders)
                   + as_receiver.index_select(-2, g.receivers) + edges @ w_edge.T + bias)  # [..., E, 2 H]
         joint_hidden, beam_hidden = hidden.split([m[0].out_features for m in mlps], dim=-1)
-        return mlps[0][1:](joint_hidden), mlps[1][1:](beam_hidden)
+        return joint_hidden, beam_hidden
 
     def forward(self, joints: torch.Tensor, beams: torch.Tensor, edges: torch.Tensor,
                 g: GraphIndex) -> tuple[torch.Tensor, torch.Tensor]:
         # joints [..., J, Dj], beams [..., B, Db], edges [..., E, De] -> [..., J, joint_out], [..., B, beam_out]
-        to_joint_edges, to_beam_edges = self.interactions(joints, beams, edges, g)  # [..., E, latent] each
-        to_joints = sum_to(to_joint_edges, g.receivers, joints.shape[-2])  # [..., J, latent]
-        to_beams = sum_to(to_beam_edges, g.edge_beam, beams.shape[-2])  # [..., B, latent]
+        to_joints, to_beams = self.received(joints, beams, edges, g)  # [..., J, latent], [..., B, latent]
         joint_in, beam_in = update_inputs(self.design, joints, beams, to_joints, to_beams, g)
         return self.joint_update(joint_in), self.beam_update(beam_in)
 

@@ -7,10 +7,11 @@ import re
 
 import pytest
 import torch
-
-from data_schema.testing import synthetic_episode
 from torch.export.graph_signature import InputKind
 
+from data_schema.testing import synthetic_episode
+
+import learn.aot
 from learn.aot import AotSteps, backend_checked, constants_as_buffers, fingerprint, machine_key
 from learn.dataset import GraphSet
 from learn.ensemble import Ensemble
@@ -89,13 +90,18 @@ def test_aot_steps_give_the_eager_rollout_alone_together_with_copies_and_in_an_e
     assert compile_rollout(model.answer_with(1, False, 1), features[0], "aot", tmp_path).stepper.compiled == 0
 
 
-def test_a_package_is_keyed_by_the_weights_and_bad_backends_are_refused(features):
+def test_a_package_is_keyed_by_the_weights_and_bad_backends_are_refused(features, monkeypatch):
     a, b = small_model(features, seed=0), small_model(features, seed=0)
     assert fingerprint(a) == fingerprint(b)
     assert fingerprint(a) == fingerprint(small_model(features, seed=0).answer_with(4, True, 4))  # answers: not the step
     with torch.no_grad():
         next(b.core.parameters())[0, 0] += 1e-6
     assert fingerprint(a) != fingerprint(b)
+    before = fingerprint(a)
+    monkeypatch.setattr(learn.aot, "_STEP_CODE", b"another step")  # the same weights, the step's code changed
+    assert fingerprint(a) != before
+    monkeypatch.undo()
+    assert fingerprint(a) == before
     with pytest.raises(ValueError, match=re.escape("rollout_backend='tensorrt': must be one of torchscript | aot | "
                                                    "aot_tuned")):
         backend_checked("tensorrt")

@@ -6,7 +6,7 @@ import torch
 from data_schema.testing import synthetic_episode
 from learn.dataset import GraphSet, augment, split_names
 from learn.features import extract
-from learn.gn import GNBlock
+from learn.gn import GNBlock, sum_to
 from learn.graph import BEAM, JOINT, Incidence, disjoint_union
 from learn.model import TERMS, Simulator
 from learn.pca import Normalizer, TermPCA
@@ -112,6 +112,33 @@ def test_gn_block_interactions_are_the_mlps_of_the_concatenated_pair(widths, lay
     loss = (to_joint_edges.sum() + to_beam_edges.sum())
     loss.backward()
     assert gn.joint_interaction[0].weight.grad.abs().sum() > 0 and gn.beam_interaction[0].weight.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("widths,layer_norm,dropout", [([16, 12], False, 0.0), ([16], False, 0.3), ([16], True, 0.0),
+                                                  ([], False, 0.0)])
+def test_interactions_received_are_the_sums_of_the_edges_messages(widths, layer_norm, dropout):
+    """GNBlock.received (a linear last layer applied once per receiver, to the summed hidden layer) gives every
+    joint and beam the sum of its edges' messages as GNBlock.interactions makes them, to float32 rounding, and the
+    gradients of that sum; with a LayerNorm after the last layer or no hidden layer it sums the messages themselves.
+    In training mode (dropout) both draw the same units when seeded alike."""
+    torch.manual_seed(0)
+    inc, xj, xb, xe = _random_graph()
+    g = inc.tensors()
+    gn = GNBlock(joint_in=5, beam_in=7, edge_in=3, latent=8, widths=widths, joint_out=4, beam_out=6,
+                 layer_norm=layer_norm, dropout=dropout)
+    with torch.no_grad():  # biases large enough that counting a receiver's edges wrongly shows
+        for m in gn.modules():
+            if isinstance(m, torch.nn.Linear):
+                m.bias.normal_(0.0, 1.0)
+    torch.manual_seed(1)
+    to_joint_edges, to_beam_edges = gn.interactions(xj, xb, xe, g)
+    torch.manual_seed(1)
+    to_joints, to_beams = gn.received(xj, xb, xe, g)
+    torch.testing.assert_close(to_joints, sum_to(to_joint_edges, g.receivers, 4), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(to_beams, sum_to(to_beam_edges, g.edge_beam, 5), atol=1e-5, rtol=1e-5)
+    grads = [torch.autograd.grad(x.square().sum(), gn.joint_interaction[0].weight)[0]
+             for x in (sum_to(to_joint_edges, g.receivers, 4), to_joints)]
+    torch.testing.assert_close(grads[0], grads[1], atol=1e-4, rtol=1e-4)
 
 
 def test_design_wide_vector_stays_within_its_design():

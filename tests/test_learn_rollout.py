@@ -33,6 +33,7 @@ def features():
 
 def fitted(features, options: dict, seed: int = 0) -> Simulator:
     data = GraphSet.build(features)
+    torch.manual_seed(seed)  # the initial weights too: a test's network must not depend on the tests run before it
     model = Simulator.fit({"core": "double_gn", "latent": 8, "widths": [16, 8], "pin_fixed_joint": True, **options},
                           data.joint_state, data.beam_state, data.static).eval()
     torch.manual_seed(seed)
@@ -64,15 +65,15 @@ def test_designs_rolled_out_together_get_the_answers_they_get_alone(features, ki
 
 def test_a_compiled_union_gives_each_design_its_compiled_answer_alone(features):
     """graph_inputs of a list: one trace for the union (its size and design count traced in), whose points, split
-    per design by GraphSet.points_of, are each design's compiled points alone (to float32 rounding: 2e-5 of the largest
-    coordinate, the gap between the compiled and the eager rollout of one design); a union of another count is traced
-    apart."""
+    per design by GraphSet.points_of, are each design's compiled points alone (to float32 rounding: 1e-4 of the largest
+    coordinate, as rollout_many's; over 30 initial weights the largest gap was 5e-5, 3e-5 with GNBlock.received;
+    crosstalk would be ~1e-2); a union of another count is traced apart."""
     model = fitted(features, MODELS["local stiffness"])
     compiled = compile_rollout(model, features[0])
     batch = GraphSet.first_frames(features)
     with torch.no_grad():
         points = compiled(*graph_inputs(features))[2]
-        tol = 2e-5 * points.abs().max().item()
+        tol = 1e-4 * points.abs().max().item()
         for i, f in enumerate(features):
             torch.testing.assert_close(batch.points_of(points, i), compiled(*graph_inputs(f))[2], atol=tol, rtol=0)
         two = compiled(*graph_inputs(features[:2]))[2]
