@@ -12,7 +12,7 @@ export OMPI_ALLOW_RUN_AS_ROOT=1
 export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset reference-data large-data validate fingerprint bench-fea stability bench-rollout tradeoff train evaluate reference-train finetune reference-evaluate publish record-data record record-pack record-status record-evaluate compare validity-calibration curves diagnose predict sweep learned-extremes clean
+.PHONY: help setup test test-slow test-mpi designs mesh-demo solve-demo dataset reference-data large-data validate fingerprint bench-fea stability bench-rollout tradeoff train evaluate reference-train finetune reference-evaluate publish record-data record record-pack record-park record-status record-evaluate compare validity-calibration curves diagnose predict sweep learned-extremes clean
 
 help:  ## list the targets
 	@grep -E '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-12s %s\n", $$1, $$2}'
@@ -88,6 +88,9 @@ record:  ## the record model rebuilt on a fresh machine (conf/record.yaml): ever
 
 record-pack:  ## the features of every episode record-data solved that packs/ lacks (learn.packs; ~0.1 MB an episode) -> new packs/<data dir>/part_<first>-<last>.h5: commit them, and a fresh machine's record-data solves only what they lack
 	$(PY) scripts/record.py pack
+
+record-park:  ## every paused stage's last.pt (resumable) -> models/paused/record_s<k>_<stage>.pt, before a session ends: commit it, and the next session's make record resumes it on any machine (a finished stage's parked file is deleted: commit that too)
+	$(PY) scripts/record.py park
 
 record-status:  ## where the record chain stands: episodes generated, each seed's stages (new / paused / finished / kept), which stages' data are complete
 	$(PY) scripts/record.py status

@@ -476,7 +476,9 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
                            f"{row['val_loss']:.3g}); {kept}")
             log.error("%s", stop_reason)
             if math.isfinite(best):  # best.pt holds it: never leave non-finite weights as the run's answer
-                restored = checkpoint.load(run_dir / BEST)
+                # (a run resumed from a parked last.pt alone, scripts/record.py, has no best.pt: its last.pt holds
+                # the last finite epoch saved)
+                restored = checkpoint.load(run_dir / BEST if (run_dir / BEST).exists() else run_dir / LAST)
                 answer.load_state_dict(restored["state_dict"])
                 model.load_state_dict(restored.get("trained_state_dict", restored["state_dict"]))
             break

@@ -23,6 +23,12 @@ so a fresh machine (ten times, sessions 21-53) loses the data, not the training:
 from the last kept stage. Since session 60 it need not lose the data either: `pack` keeps the features of every solved
 episode (learn.packs, ~0.1 MB an episode against ~0.9 MB and ~18 s of FEA) in the repository's packs/, and every
 command first puts them in place (<out>/features/), where learn reads them and `data` counts them as solved.
+`park` does for a paused stage what `keep` does for a finished one: its run's last.pt (optimiser, history and split
+with it: resumable) copied to <park_dir>/<run_root's name>_s<seed>_<stage>.pt (~21 MB a seed; commit it), and every
+`train` or `status` puts a parked checkpoint back as its run's last.pt where the run is gone, so a stage of more
+epochs than a session leaves time for (ft2: ~135 min, of which data and evaluations take a session's first hour)
+goes on from its last epoch on a fresh machine too. `park` also deletes a parked file whose stage has finished since
+(commit the deletion).
 `status` prints where both seeds and the data stand.
 """
 from __future__ import annotations
@@ -154,6 +160,59 @@ def kept_dir(cfg, seed: int, stage) -> Path | None:
     if not stage.get("keep"):
         return None
     return Path(cfg.get("keep_dir", "models")) / f"{Path(str(cfg.run_root)).name}_s{seed}_{stage.name}"
+
+
+def parked_path(cfg, seed: int, stage) -> Path | None:
+    """Where `park` keeps a paused stage's last.pt (models/paused/record_s0_ft2.pt); None without a park_dir."""
+    if not cfg.get("park_dir"):
+        return None
+    return Path(cfg.park_dir) / f"{Path(str(cfg.run_root)).name}_s{seed}_{stage.name}.pt"
+
+
+def park(cfg) -> int:
+    """Every paused stage's last.pt -> its parked_path (when it differs); a parked file of a stage that has finished
+    (or is kept) since is deleted. Commit park_dir."""
+    import shutil
+
+    from data_schema import atomic
+
+    if not cfg.get("park_dir"):
+        raise ValueError(f"park: {CONF.name} needs park_dir (where paused stages are kept)")
+    for seed in cfg.seeds:
+        for stage in cfg.stages:
+            parked, now = ROOT / parked_path(cfg, seed, stage), state(cfg, seed, stage)[0]
+            last = ROOT / run_dir(cfg, seed, stage.name) / "last.pt"
+            if now == "paused" and (not parked.exists() or parked.read_bytes() != last.read_bytes()):
+                with atomic.replacing(parked) as tmp:
+                    shutil.copyfile(last, tmp)
+                print(f"[record] seed {seed} {stage.name}: paused at {epochs_done(run_dir(cfg, seed, stage.name))}"
+                      f"parked as {parked_path(cfg, seed, stage)} ({parked.stat().st_size / 2**20:.0f} MB): commit it",
+                      flush=True)
+            elif now in ("finished", "kept") and parked.exists():
+                parked.unlink()
+                print(f"[record] seed {seed} {stage.name}: {now}; its parked checkpoint deleted: commit the deletion "
+                      f"(git add -A {cfg.park_dir})", flush=True)
+    return 0
+
+
+def unpark(cfg) -> None:
+    """A parked checkpoint put back as its run's last.pt where the run has none and the stage is not kept: a paused
+    stage resumes on a machine its run never was on."""
+    import shutil
+
+    from data_schema import atomic
+
+    if not cfg.get("park_dir"):
+        return
+    for seed in cfg.seeds:
+        for stage in cfg.stages:
+            parked = ROOT / parked_path(cfg, seed, stage)
+            last = ROOT / run_dir(cfg, seed, stage.name) / "last.pt"
+            if parked.exists() and state(cfg, seed, stage)[0] == "new":  # no run here, nothing kept
+                with atomic.replacing(last) as tmp:
+                    shutil.copyfile(parked, tmp)
+                print(f"[record] seed {seed} {stage.name}: {parked_path(cfg, seed, stage)} put back as its run's last.pt",
+                      flush=True)
 
 
 def state(cfg, seed: int, stage) -> tuple[str, float]:
@@ -443,7 +502,7 @@ def status(cfg) -> int:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("what", choices=("data", "train", "status", "members", "pack"))
+    p.add_argument("what", choices=("data", "train", "status", "members", "pack", "park"))
     p.add_argument("--seed", type=int, default=None, help="one seed's chain; default: every seed side by side")
     p.add_argument("--log-dir", type=Path, default=ROOT / "logs", help="side by side: record_s<seed>.log here")
     p.add_argument("--jobs", type=int, default=2)
@@ -459,10 +518,14 @@ def main(argv=None) -> int:
         p.error(f"--budget-min {a.budget_min}: must be > 0 minutes")
     if a.what != "members":
         restore(cfg)  # the repository's feature packs in place before anything counts or reads episodes
+    if a.what in ("train", "status"):
+        unpark(cfg)  # a paused stage's parked checkpoint where its run is gone
     if a.what == "data":
         return data(cfg, a.jobs)
     if a.what == "pack":
         return pack(cfg)
+    if a.what == "park":
+        return park(cfg)
     if a.what == "train":
         if a.seed is None:
             return side_by_side(cfg, a.conf, [int(k) for k in cfg.seeds], a.budget_min, a.log_dir, a.wait)

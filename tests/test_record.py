@@ -320,3 +320,41 @@ def test_record_data_packs_each_batch_as_soon_as_it_is_solved(tmp_path, monkeypa
     assert record.main(["data", "--conf", str(path)]) == 0
     assert [s[:2] for s in seen] == [(3, 2)]
     assert sorted(p.name for p in (tmp_path / "packs" / "ds").glob("*.h5"))[-1] == "part_00003-00004.h5"
+
+
+def test_a_paused_stage_parked_in_the_repository_resumes_on_a_fresh_machine(chain, capsys):
+    import shutil
+
+    path, runs = chain
+    cfg = OmegaConf.load(path)
+    cfg.park_dir = str(runs.parent / "models" / "paused")
+    cfg.stages = [cfg.stages[0]]
+    parked_conf = path.with_name("parked.yaml")
+    OmegaConf.save(cfg, parked_conf)
+    assert record.main(["train", "--seed", "0", "--conf", str(parked_conf), "--budget-min", "30"]) == 0
+    last = runs / "rec_s0" / "a" / "last.pt"
+    ckpt = torch.load(last, weights_only=True)
+    ckpt = {**ckpt, "finished": False, "config": {**ckpt["config"], "epochs": 2}}
+    torch.save(ckpt, last)  # a paused after the first of two epochs, as a time limit leaves it
+    cfg.stages[0].args = [*cfg.stages[0].args, "epochs=2"]
+    OmegaConf.save(cfg, parked_conf)
+    assert record.main(["park", "--conf", str(parked_conf)]) == 0
+    parked = runs.parent / "models" / "paused" / "rec_s0_a.pt"
+    assert parked.read_bytes() == last.read_bytes() and "parked as" in capsys.readouterr().out
+    assert not (runs.parent / "models" / "paused" / "rec_s1_a.pt").exists()  # seed 1 never started: nothing parked
+    shutil.rmtree(runs)  # a fresh machine: the run is gone, the committed parked file is not
+    assert record.main(["status", "--conf", str(parked_conf)]) == 0
+    out = capsys.readouterr().out
+    assert "put back as its run's last.pt" in out and "a paused (epoch 1 of 2, " in out
+    assert record.main(["train", "--seed", "0", "--conf", str(parked_conf), "--budget-min", "30"]) == 0
+    resumed = torch.load(last, weights_only=True)
+    assert resumed["finished"] and len(resumed["history"]) == 2  # one more epoch, not the stage again
+    assert resumed["history"][0] == ckpt["history"][0] and resumed["split"] == ckpt["split"]
+    capsys.readouterr()
+    assert record.main(["park", "--conf", str(parked_conf)]) == 0  # finished now: its parked file goes
+    assert not parked.exists() and "parked checkpoint deleted" in capsys.readouterr().out
+    assert record.main(["status", "--conf", str(parked_conf)]) == 0 and "a finished" in capsys.readouterr().out
+    del cfg["park_dir"]
+    OmegaConf.save(cfg, parked_conf)
+    with pytest.raises(ValueError, match="needs park_dir"):
+        record.main(["park", "--conf", str(parked_conf)])
