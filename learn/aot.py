@@ -109,8 +109,8 @@ STEP_MODULES = ("aot", "model", "gn", "stiffness", "frames", "kinematics", "pca"
 
 def step_code() -> bytes:
     """sha256 of the source of every learn module a compiled step is made of (STEP_MODULES): a package compiled
-    before a change to how a step computes is not taken for one of the changed code (session 61's float64 products
-    were such a change, under the same weights)."""
+    before a change to how a step computes is not taken for one of the changed code (session 61's interactions
+    summed before their last layer, learn.gn.summed_over_edges, were such a change, under the same weights)."""
     h = hashlib.sha256()
     for name in STEP_MODULES:
         h.update((Path(__file__).parent / f"{name}.py").read_bytes())
