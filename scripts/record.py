@@ -84,20 +84,28 @@ def repo_packs(cfg, entry) -> Path:
 def restore(cfg) -> None:
     """The repository's feature packs of every data entry put in its data directory (<out>/features/), so learn
     reads them and missing_episodes counts them: what a session packed is not solved again on a fresh machine."""
-    import shutil
-
-    from data_schema import atomic
     from learn.packs import pack_dir
 
     if not cfg.get("pack_dir"):
         return  # a record conf without packs
     for e in cfg.data:
         for src in sorted(repo_packs(cfg, e).glob("*.h5")):
-            dst = pack_dir(ROOT / e.out) / src.name
-            if not dst.exists() or dst.read_bytes() != src.read_bytes():
-                with atomic.replacing(dst) as tmp:
-                    shutil.copyfile(src, tmp)
+            if copied(src, pack_dir(ROOT / e.out) / src.name):
                 print(f"[record] {e.out}: feature pack {src} in place", flush=True)
+
+
+def copied(src: Path, dst: Path) -> bool:
+    """dst made a copy of src (atomically: a killed copy leaves dst as it was) unless it already is one; whether it
+    was copied."""
+    import shutil
+
+    from data_schema import atomic
+
+    if dst.exists() and dst.read_bytes() == src.read_bytes():
+        return False
+    with atomic.replacing(dst) as tmp:
+        shutil.copyfile(src, tmp)
+    return True
 
 
 def runs_of(indices: list[int]) -> list[tuple[int, int]]:
@@ -172,19 +180,12 @@ def parked_path(cfg, seed: int, stage) -> Path | None:
 def park(cfg) -> int:
     """Every paused stage's last.pt -> its parked_path (when it differs); a parked file of a stage that has finished
     (or is kept) since is deleted. Commit park_dir."""
-    import shutil
-
-    from data_schema import atomic
-
     if not cfg.get("park_dir"):
         raise ValueError(f"park: {CONF.name} needs park_dir (where paused stages are kept)")
     for seed in cfg.seeds:
         for stage in cfg.stages:
             parked, now = ROOT / parked_path(cfg, seed, stage), state(cfg, seed, stage)[0]
-            last = ROOT / run_dir(cfg, seed, stage.name) / "last.pt"
-            if now == "paused" and (not parked.exists() or parked.read_bytes() != last.read_bytes()):
-                with atomic.replacing(parked) as tmp:
-                    shutil.copyfile(last, tmp)
+            if now == "paused" and copied(ROOT / run_dir(cfg, seed, stage.name) / "last.pt", parked):
                 print(f"[record] seed {seed} {stage.name}: paused at {epochs_done(run_dir(cfg, seed, stage.name))}"
                       f"parked as {parked_path(cfg, seed, stage)} ({parked.stat().st_size / 2**20:.0f} MB): commit it",
                       flush=True)
@@ -198,21 +199,15 @@ def park(cfg) -> int:
 def unpark(cfg) -> None:
     """A parked checkpoint put back as its run's last.pt where the run has none and the stage is not kept: a paused
     stage resumes on a machine its run never was on."""
-    import shutil
-
-    from data_schema import atomic
-
     if not cfg.get("park_dir"):
         return
     for seed in cfg.seeds:
         for stage in cfg.stages:
             parked = ROOT / parked_path(cfg, seed, stage)
-            last = ROOT / run_dir(cfg, seed, stage.name) / "last.pt"
             if parked.exists() and state(cfg, seed, stage)[0] == "new":  # no run here, nothing kept
-                with atomic.replacing(last) as tmp:
-                    shutil.copyfile(parked, tmp)
-                print(f"[record] seed {seed} {stage.name}: {parked_path(cfg, seed, stage)} put back as its run's last.pt",
-                      flush=True)
+                copied(parked, ROOT / run_dir(cfg, seed, stage.name) / "last.pt")
+                print(f"[record] seed {seed} {stage.name}: {parked_path(cfg, seed, stage)} put back as its run's "
+                      "last.pt", flush=True)
 
 
 def state(cfg, seed: int, stage) -> tuple[str, float]:
