@@ -167,14 +167,19 @@ def kept_dir(cfg, seed: int, stage) -> Path | None:
     """Where a stage with `keep` is published (models/record_s0_ref18); None for a stage that is not kept."""
     if not stage.get("keep"):
         return None
-    return Path(cfg.get("keep_dir", "models")) / f"{Path(str(cfg.run_root)).name}_s{seed}_{stage.name}"
+    return Path(cfg.get("keep_dir", "models")) / stage_label(cfg, seed, stage)
+
+
+def stage_label(cfg, seed: int, stage) -> str:
+    """A seed's stage as the repository names what it keeps of it: <run_root's name>_s<seed>_<stage> (record_s0_ft2)."""
+    return f"{Path(str(cfg.run_root)).name}_s{seed}_{stage.name}"
 
 
 def parked_path(cfg, seed: int, stage) -> Path | None:
     """Where `park` keeps a paused stage's last.pt (models/paused/record_s0_ft2.pt); None without a park_dir."""
     if not cfg.get("park_dir"):
         return None
-    return Path(cfg.park_dir) / f"{Path(str(cfg.run_root)).name}_s{seed}_{stage.name}.pt"
+    return Path(cfg.park_dir) / f"{stage_label(cfg, seed, stage)}.pt"
 
 
 def park(cfg) -> int:
