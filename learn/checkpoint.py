@@ -6,6 +6,7 @@ from pathlib import Path
 import torch
 
 from data_schema import atomic
+from learn.checks import integer_in
 from learn.model import Simulator
 
 FORMAT = "morphsim.learn/1"
@@ -69,6 +70,17 @@ def model_from(ckpt: dict) -> Simulator:
             state.update({f"{step}.{k}": state[f"{delta}.{k}"] for k in ("mean", "std")})  # deltas' stds
     model.load_state_dict(state)
     return model.eval()
+
+
+def first_passes(ckpt: dict, n: int) -> dict:
+    """The checkpoint with its model cut to the first n network passes of a step (the predictor and n - 1
+    correctors; conf/train.yaml init_passes): a faster model to fine-tune from a slower one. Each pass is a core of its
+    own (learn.model.Simulator.correctors), so the passes kept are the same networks and the rest are dropped."""
+    have = int(ckpt["model_args"].get("passes", 1))
+    n = integer_in(n, "init_passes", 1, have, f"network passes kept of init_from's {have}; null: all")
+    dropped = tuple(f"correctors.{i}." for i in range(n - 1, have - 1))
+    state = {k: v for k, v in ckpt["state_dict"].items() if not k.startswith(dropped)}
+    return {**ckpt, "model_args": {**ckpt["model_args"], "passes": n}, "state_dict": state}
 
 
 def load_model(path: str | Path) -> Simulator:

@@ -379,8 +379,12 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
         log.info("run in %s has already finished (epoch %d); nothing to do", run_dir, resumed["epoch"])
         return resumed["summary"]
 
+    if cfg.get("init_passes") is not None and not cfg.get("init_from"):
+        raise ValueError(f"init_passes={cfg.init_passes!r}: needs init_from (the checkpoint whose first passes are kept)")
     init = None if resumed or not cfg.get("init_from") else checkpoint.load(
         publish.one_checkpoint(cfg.init_from, "init_from"))  # a run's checkpoint or a published models/<name>
+    if init and cfg.get("init_passes") is not None:  # a faster model from a slower one: its first passes only
+        init = checkpoint.first_passes(init, cfg.init_passes)
     extra_dirs = extra_dirs_checked(cfg.get("train_extra_dirs"))  # before any episode is read
     val_dirs = extra_dirs_checked(cfg.get("val_extra_dirs"), "val_extra_dirs", "make validation-data")
     features = load_features(episode_paths(cfg.data_dir))
@@ -442,13 +446,14 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
         history, best, bad, start = resumed["history"], resumed["best"], resumed["bad_epochs"], resumed["epoch"] + 1
         log.info("resumed from %s at epoch %d", last, start)
     config = OmegaConf.to_container(cfg, resolve=True)
-    if resumed:  # the network is the checkpoint's: record its model settings, not the conf's, and say what differs
+    if resumed or init:  # the network is the checkpoint's: record its model settings, not the conf's; say what differs
         # the checkpoint's settings as the network reads them: a key it predates takes the model's default
-        stored = model_args(OmegaConf.create({k: v for k, v in resumed["model_args"].items() if k != "pca"}))
+        stored = model_args(OmegaConf.create({k: v for k, v in (resumed or init)["model_args"].items() if k != "pca"}))
         asked = model_args(cfg.model)
         differ = sorted(k for k in asked if asked[k] != stored[k])
         if differ:
-            log.warning("resuming keeps the checkpoint's model; conf model differs in %s (ignored)",
+            log.warning("%s keeps the checkpoint's model; conf model differs in %s (ignored)",
+                        "resuming" if resumed else "init_from",
                         ", ".join(f"{k} (conf {asked[k]!r}, checkpoint {stored[k]!r})" for k in differ))
         config["model"] = {**config["model"], **{k: stored[k] for k in differ}}
     t0 = time.perf_counter() - (history[-1]["seconds"] if history else 0.0)

@@ -674,6 +674,32 @@ def test_init_from_fine_tunes_the_weights_with_the_checkpoints_split_and_statist
     assert [h["epoch"] for h in hist] == [0, 1]  # a fresh history and optimiser
 
 
+def test_init_passes_keeps_the_first_passes_of_a_slower_model(trained, data_dir, tmp_path):
+    """init_passes=1 from a two-pass checkpoint: the predictor's weights as they were, the corrector gone, and the
+    one-pass model's step is the two-pass model's first pass (the same network); more passes than it has refused."""
+    run, _ = trained
+    start = checkpoint.load(run / "best.pt")
+    assert start["model_args"]["passes"] == 2
+    train(cfg_for("train", tiny(data_dir, tmp_path, "epochs=0", f"init_from={run / 'best.pt'}", "init_passes=1")))
+    tuned = checkpoint.load(tmp_path / "last.pt")
+    assert tuned["model_args"] == {**start["model_args"], "passes": 1} and tuned["config"]["model"]["passes"] == 1
+    kept = {k: v for k, v in start["state_dict"].items() if not k.startswith("correctors.")}
+    assert kept.keys() == tuned["state_dict"].keys() and len(kept) < len(start["state_dict"])
+    assert all(torch.equal(tuned["state_dict"][k], v) for k, v in kept.items())
+    b = GraphSet.first_frames(load_features(sorted(data_dir.glob("*.h5"))[:2]))
+    two, one = checkpoint.model_from(start), checkpoint.model_from(tuned)
+    inputs = (b.joint_state[0], b.beam_state[0], b.static, torch.tensor(0.0))
+    with torch.no_grad():
+        first, step, both = two._pass(two.core, *inputs), one.step(*inputs), two.step(*inputs)
+    assert not torch.equal(both[0], first[0])  # the corrector did something: the cut is not a no-op
+    for a, b in zip(first, step):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    with pytest.raises(ValueError, match=r"init_passes=3: must be an integer in \[1, 2\]"):
+        train(cfg_for("train", tiny(data_dir, tmp_path / "three", f"init_from={run / 'best.pt'}", "init_passes=3")))
+    with pytest.raises(ValueError, match="init_passes=1: needs init_from"):
+        train(cfg_for("train", tiny(data_dir, tmp_path / "none", "init_passes=1")))
+
+
 def test_beam_chords_are_the_section_centre_differences_and_weigh_in_the_loss():
     from learn.metrics import beam_chords, multistep_loss
     fs = [extract(synthetic_episode(3, 3, 5, 3, 3, 4, seed=s)) for s in range(2)]
