@@ -692,8 +692,8 @@ def test_init_passes_keeps_the_first_passes_of_a_slower_model(trained, data_dir,
     with torch.no_grad():
         first, step, both = two._pass(two.core, *inputs), one.step(*inputs), two.step(*inputs)
     assert not torch.equal(both[0], first[0])  # the corrector did something: the cut is not a no-op
-    for a, b in zip(first, step):
-        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    for cut, whole in zip(step, first):
+        torch.testing.assert_close(cut, whole, rtol=0, atol=0)
     with pytest.raises(ValueError, match=r"init_passes=3: must be an integer in \[1, 2\]"):
         train(cfg_for("train", tiny(data_dir, tmp_path / "three", f"init_from={run / 'best.pt'}", "init_passes=3")))
     with pytest.raises(ValueError, match="init_passes=1: needs init_from"):
