@@ -358,6 +358,8 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
     if cfg.get("init_required") and not cfg.get("init_from"):  # an experiment that carries a trained model on
         raise ValueError("init_from: required by this experiment: the trained checkpoint it carries on, e.g. "
                          "init_from=runs/<start>/best.pt")
+    if cfg.get("init_passes") is not None and not cfg.get("init_from"):
+        raise ValueError(f"init_passes={cfg.init_passes!r}: needs init_from (the checkpoint whose first passes are kept)")
     term_retention(retention_of(cfg))  # a bad value stops here, before any data is read
     ema_decay_checked(cfg.optim.get("ema_decay", 0.0))
     weight_decay_checked(cfg.optim.weight_decay)
@@ -379,8 +381,6 @@ def _train(cfg: DictConfig, run_dir: Path) -> dict:
         log.info("run in %s has already finished (epoch %d); nothing to do", run_dir, resumed["epoch"])
         return resumed["summary"]
 
-    if cfg.get("init_passes") is not None and not cfg.get("init_from"):
-        raise ValueError(f"init_passes={cfg.init_passes!r}: needs init_from (the checkpoint whose first passes are kept)")
     init = None if resumed or not cfg.get("init_from") else checkpoint.load(
         publish.one_checkpoint(cfg.init_from, "init_from"))  # a run's checkpoint or a published models/<name>
     if init and cfg.get("init_passes") is not None:  # a faster model from a slower one: its first passes only
