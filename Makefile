@@ -80,24 +80,27 @@ publish:  ## keep a trained model in the repository: CKPT (or CKPT='[a.pt,b.pt]'
 	@test -n "$(CKPT)" -a -n "$(NAME)" || { echo "make publish: CKPT=runs/<run>/best.pt (or '[a.pt,b.pt]') and NAME=<name> are required" >&2; exit 2; }
 	$(PY) -m learn.publish "checkpoints=$(CKPT)" name=$(NAME) $(if $(REPORT),report=$(REPORT)) $(ARGS)
 
+# RECORD_SET="key=value ..." (any record-* target): another chain of conf/record.yaml's stages, e.g. one pass:
+#   RECORD_SET="run_root=runs/record1p stage_args=[model.passes=1] publish_as=record1p_pair"
+RECORD_SET_ARGS = $(foreach o,$(RECORD_SET),--set=$(o))
 record-data:  ## every episode the record chain trains and is evaluated on (conf/record.yaml: ds_heldout 50, ds_default 800, ds_large 700, ds_val 100; ~6 h on 2 cores) that no feature pack in packs/ holds (put in place first), packed every 200 as solved (commit packs/); JOBS=2; resumable
-	$(PY) scripts/record.py data --jobs $(JOBS)
+	$(PY) scripts/record.py data --jobs $(JOBS) $(RECORD_SET_ARGS)
 
 record:  ## the record model rebuilt on a fresh machine (conf/record.yaml): every seed's stages in order, side by side (one core each; SEED=k: one alone), each resumable and started once the data it needs exist, for at most BUDGET_MIN minutes (150; logs/record_s<k>.log; WAIT=1: a stage waits for its data, make record-data running beside, instead of exiting 4); again each session until finished; kept stages land in models/record_s<k>_<stage> (commit them)
-	$(PY) scripts/record.py train $(if $(SEED),--seed $(SEED)) --budget-min $(or $(BUDGET_MIN),150) $(if $(WAIT),--wait)
+	$(PY) scripts/record.py train $(if $(SEED),--seed $(SEED)) --budget-min $(or $(BUDGET_MIN),150) $(if $(WAIT),--wait) $(RECORD_SET_ARGS)
 
 record-pack:  ## the features of every episode record-data solved that packs/ lacks (learn.packs; ~0.1 MB an episode) -> new packs/<data dir>/part_<first>-<last>.h5: commit them, and a fresh machine's record-data solves only what they lack
-	$(PY) scripts/record.py pack
+	$(PY) scripts/record.py pack $(RECORD_SET_ARGS)
 
 record-park:  ## every paused stage's last.pt (resumable) -> models/paused/record_s<k>_<stage>.pt, before a session ends: commit it, and the next session's make record resumes it on any machine (a finished stage's parked file is deleted: commit that too)
-	$(PY) scripts/record.py park
+	$(PY) scripts/record.py park $(RECORD_SET_ARGS)
 
 record-status:  ## where the record chain stands: episodes generated, each seed's stages (new / paused / finished / kept), which stages' data are complete
-	$(PY) scripts/record.py status
+	$(PY) scripts/record.py status $(RECORD_SET_ARGS)
 
-record-evaluate:  ## the record pair (each seed's last stage) on the 102 held-out designs -> reports/record/102, then published as models/record_pair (commit it)
-	$(MAKE) reference-evaluate "CKPT=[$$($(PY) scripts/record.py members)]" REF=reports/record
-	$(MAKE) publish "CKPT=[$$($(PY) scripts/record.py members)]" NAME=$$($(PY) -c "from omegaconf import OmegaConf; print(OmegaConf.load('conf/record.yaml').publish_as)") REPORT=reports/record/102
+record-evaluate:  ## the record pair (each seed's last stage) on the 102 held-out designs -> reports/<publish_as>/102, then published as models/<publish_as> (record_pair; commit it)
+	$(MAKE) reference-evaluate "CKPT=[$$($(PY) scripts/record.py members $(RECORD_SET_ARGS))]" REF=reports/$$($(PY) scripts/record.py publish-name $(RECORD_SET_ARGS))
+	$(MAKE) publish "CKPT=[$$($(PY) scripts/record.py members $(RECORD_SET_ARGS))]" NAME=$$($(PY) scripts/record.py publish-name $(RECORD_SET_ARGS)) REPORT=reports/$$($(PY) scripts/record.py publish-name $(RECORD_SET_ARGS))/102
 
 compare:  ## design-by-design comparison of reports against the first (REPORTS=a,b[,c]; LABELS=x,y[,z]; SIZES=n1,n2,..: a scaling fit; reports/compare/)
 	$(PY) -m learn.compare 'reports=[$(REPORTS)]' $(if $(LABELS),'labels=[$(LABELS)]') $(if $(SIZES),'sizes=[$(SIZES)]') out_dir=$(or $(CMP),reports/compare)

@@ -30,6 +30,10 @@ epochs than a session leaves time for (ft2: ~135 min, of which data and evaluati
 goes on from its last epoch on a fresh machine too. `park` also deletes a parked file whose stage has finished since
 (commit the deletion).
 `status` prints where both seeds and the data stand.
+`--set key=value` (repeatable; make RECORD_SET="...") overrides a key of the conf for any command: with `stage_args`
+(appended to every stage's learn.train args) and its own `run_root` (its runs, keeps, parks and logs are named after
+it) another chain of the same stages runs beside the default one, e.g. one pass (session 64):
+    make record RECORD_SET="run_root=runs/record1p stage_args=[model.passes=1] publish_as=record1p_pair"
 """
 from __future__ import annotations
 
@@ -57,8 +61,16 @@ OUTCOMES = {0: "every stage finished", 3: "paused (budget): run the same command
             WAITS: "waits for data: make record-data, then the same command again"}
 
 
-def conf(path: Path = CONF):
-    return OmegaConf.load(path)
+def conf(path: Path = CONF, overrides: list[str] | None = None):
+    """conf/record.yaml (or `path`) with `overrides` (OmegaConf dotlist, key=value) on top: another chain of the same
+    stages, e.g. run_root=runs/record1p 'stage_args=[model.passes=1]' publish_as=record1p_pair (keeps and parks named
+    after run_root, so it never touches the default chain's)."""
+    cfg = OmegaConf.load(path)
+    for item in overrides or []:
+        if "=" not in item or item.split("=", 1)[0] not in cfg:
+            raise ValueError(f"--set {item!r}: must be <key>=<value> with a key of {path.name} "
+                             f"({', '.join(str(k) for k in cfg)})")
+    return OmegaConf.merge(cfg, OmegaConf.from_dotlist(list(overrides or [])))
 
 
 def missing_episodes(entry, n: int | None = None) -> list[int]:
@@ -421,7 +433,8 @@ def train(cfg, seed: int, budget_min: float, wait: bool = False) -> int:
                   "one epoch of it); run the same command again to go on")
             return 3
         start = [] if stage["from"] is None else [f"init_from={start_of(cfg, seed, stage['from'])}"]
-        cmd = [sys.executable, "-m", "learn.train", *stage.args, *start, f"seed={seed}", f"run_dir={rd}",
+        cmd = [sys.executable, "-m", "learn.train", *stage.args, *cfg.get("stage_args", []), *start, f"seed={seed}",
+               f"run_dir={rd}",
                f"time_limit_min={done + left:.1f}"]
         print(f"[record] seed {seed} {stage.name} ({now}, {done:.0f} min done):", " ".join(cmd), flush=True)
         rc = subprocess.call(cmd, cwd=ROOT)
@@ -439,16 +452,16 @@ def train(cfg, seed: int, budget_min: float, wait: bool = False) -> int:
 
 
 def side_by_side(cfg, conf_path: Path, seeds: list[int], budget_min: float, log_dir: Path,
-                 wait: bool = False) -> int:
-    """Every seed's chain at once, one process (one core) each, each writing log_dir/record_s<seed>.log."""
+                 wait: bool = False, overrides: list[str] = ()) -> int:
+    """Every seed's chain at once, one process (one core) each, each writing log_dir/<run_root's name>_s<seed>.log."""
     log_dir.mkdir(parents=True, exist_ok=True)
     procs = []
     for seed in seeds:
-        log = log_dir / f"record_s{seed}.log"
+        log = log_dir / f"{Path(str(cfg.run_root)).name}_s{seed}.log"
         with open(log, "a") as out:
             procs.append((seed, log, subprocess.Popen(
                 [sys.executable, __file__, "train", "--seed", str(seed), "--budget-min", str(budget_min),
-                 "--conf", str(conf_path), *(["--wait"] if wait else [])],
+                 "--conf", str(conf_path), *(["--wait"] if wait else []), *(f"--set={o}" for o in overrides)],
                 cwd=ROOT, stdout=out, stderr=subprocess.STDOUT)))
         print(f"[record] seed {seed}: started (pid {procs[-1][2].pid}), log {log}", flush=True)
     codes = {seed: p.wait() for seed, _, p in procs}
@@ -502,7 +515,7 @@ def status(cfg) -> int:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("what", choices=("data", "train", "status", "members", "pack", "park"))
+    p.add_argument("what", choices=("data", "train", "status", "members", "pack", "park", "publish-name"))
     p.add_argument("--seed", type=int, default=None, help="one seed's chain; default: every seed side by side")
     p.add_argument("--log-dir", type=Path, default=ROOT / "logs", help="side by side: record_s<seed>.log here")
     p.add_argument("--jobs", type=int, default=2)
@@ -510,13 +523,18 @@ def main(argv=None) -> int:
     p.add_argument("--conf", type=Path, default=CONF)
     p.add_argument("--wait", action="store_true", help="train: a stage whose data are not complete waits for them "
                    "(make record-data running beside) within the budget, instead of exiting 4")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a key of the conf (repeatable), e.g. --set run_root=runs/record1p")
     a = p.parse_args(argv)
-    cfg = conf(a.conf)
+    try:
+        cfg = conf(a.conf, a.set)
+    except ValueError as e:
+        p.error(str(e))
     if a.what == "train" and a.seed is not None and a.seed not in list(cfg.seeds):
         p.error(f"--seed {a.seed}: conf/record.yaml's seeds are {list(cfg.seeds)}")
     if a.budget_min <= 0:
         p.error(f"--budget-min {a.budget_min}: must be > 0 minutes")
-    if a.what != "members":
+    if a.what not in ("members", "publish-name"):
         restore(cfg)  # the repository's feature packs in place before anything counts or reads episodes
     if a.what in ("train", "status"):
         unpark(cfg)  # a paused stage's parked checkpoint where its run is gone
@@ -528,10 +546,13 @@ def main(argv=None) -> int:
         return park(cfg)
     if a.what == "train":
         if a.seed is None:
-            return side_by_side(cfg, a.conf, [int(k) for k in cfg.seeds], a.budget_min, a.log_dir, a.wait)
+            return side_by_side(cfg, a.conf, [int(k) for k in cfg.seeds], a.budget_min, a.log_dir, a.wait, a.set)
         return train(cfg, a.seed, a.budget_min, a.wait)
     if a.what == "members":
         print(",".join(members(cfg)))
+        return 0
+    if a.what == "publish-name":
+        print(cfg.publish_as)
         return 0
     return status(cfg)
 

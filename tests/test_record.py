@@ -112,7 +112,7 @@ def test_without_a_seed_every_seed_trains_side_by_side_each_into_its_own_log(cha
     for seed in (0, 1):
         assert torch.load(runs / f"rec_s{seed}" / "b" / "last.pt", weights_only=True)["finished"]
         assert f"seed {seed}: every stage finished" in out
-        assert "every stage finished" in (tmp_path / "logs" / f"record_s{seed}.log").read_text()
+        assert "every stage finished" in (tmp_path / "logs" / f"rec_s{seed}.log").read_text()  # run_root's name
 
 
 def test_a_stage_waits_only_for_the_data_it_needs(chain, capsys):
@@ -129,7 +129,7 @@ def test_a_stage_waits_only_for_the_data_it_needs(chain, capsys):
     log_dir = path.parent / "logs"  # side by side: waiting for data is an outcome, not a failure
     assert record.main(["train", "--conf", str(partial), "--log-dir", str(log_dir)]) == record.WAITS
     assert capsys.readouterr().out.count("waits for data: make record-data") == 2
-    assert "lacks 2 episodes" in (log_dir / "record_s1.log").read_text()
+    assert "lacks 2 episodes" in (log_dir / "rec_s1.log").read_text()
     assert record.main(["status", "--conf", str(partial)]) == 0
     out = capsys.readouterr().out
     assert "stage a: done by every seed" in out and "stage b: waits for" in out and "2 missing of its first 6" in out
@@ -358,3 +358,26 @@ def test_a_paused_stage_parked_in_the_repository_resumes_on_a_fresh_machine(chai
     OmegaConf.save(cfg, parked_conf)
     with pytest.raises(ValueError, match="needs park_dir"):
         record.main(["park", "--conf", str(parked_conf)])
+
+
+def test_another_chain_of_the_same_stages_by_overrides_leaves_the_default_chain_alone(chain, capsys):
+    """--set (make record RECORD_SET=...): stage_args reach every stage's learn.train, and the chain lives under its
+    own run_root (runs, keeps and parks named after it); a key the conf does not have is refused by name."""
+    path, runs = chain
+    cfg = OmegaConf.load(path)
+    cfg.stage_args = []
+    OmegaConf.save(cfg, path)
+    one = ["--set", f"run_root={runs / 'one'}", "--set", "stage_args=[model.passes=1]"]
+    assert record.main(["train", "--seed", "0", "--conf", str(path), "--budget-min", "30", *one]) == 0
+    for name in ("a", "b"):
+        ckpt = torch.load(runs / "one_s0" / name / "last.pt", weights_only=True)
+        assert ckpt["finished"] and ckpt["config"]["model"]["passes"] == 1
+    assert not (runs / "rec_s0").exists()  # the default chain untouched
+    capsys.readouterr()
+    assert record.main(["members", "--conf", str(path), *one]) == 0
+    assert capsys.readouterr().out.strip() == f"{runs}/one_s0/b/last.pt,{runs}/one_s1/b/last.pt"
+    assert record.main(["publish-name", "--conf", str(path), "--set", "publish_as=one_pair"]) == 0
+    assert capsys.readouterr().out.strip() == "one_pair"
+    with pytest.raises(SystemExit):
+        record.main(["status", "--conf", str(path), "--set", "run_rot=runs/x"])
+    assert "--set 'run_rot=runs/x': must be <key>=<value> with a key of record.yaml" in capsys.readouterr().err
