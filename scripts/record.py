@@ -68,7 +68,7 @@ def conf(path: Path = CONF, overrides: list[str] | None = None):
     cfg = OmegaConf.load(path)
     for item in overrides or []:
         if "=" not in item or item.split("=", 1)[0] not in cfg:
-            raise ValueError(f"--set {item!r}: must be <key>=<value> with a key of {path.name} "
+            raise ValueError(f"--set {item!r}: must be <key>=<value> with a top-level key of {path.name} "
                              f"({', '.join(str(k) for k in cfg)})")
     return OmegaConf.merge(cfg, OmegaConf.from_dotlist(list(overrides or [])))
 
@@ -517,14 +517,14 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("what", choices=("data", "train", "status", "members", "pack", "park", "publish-name"))
     p.add_argument("--seed", type=int, default=None, help="one seed's chain; default: every seed side by side")
-    p.add_argument("--log-dir", type=Path, default=ROOT / "logs", help="side by side: record_s<seed>.log here")
+    p.add_argument("--log-dir", type=Path, default=ROOT / "logs", help="side by side: <run_root's name>_s<seed>.log here (record_s<seed>.log)")
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--budget-min", type=float, default=150.0, help="minutes this invocation may train")
     p.add_argument("--conf", type=Path, default=CONF)
     p.add_argument("--wait", action="store_true", help="train: a stage whose data are not complete waits for them "
                    "(make record-data running beside) within the budget, instead of exiting 4")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a key of the conf (repeatable), e.g. --set run_root=runs/record1p")
+                   help="override a top-level key of the conf (repeatable), e.g. --set run_root=runs/record1p")
     a = p.parse_args(argv)
     try:
         cfg = conf(a.conf, a.set)

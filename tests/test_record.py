@@ -380,4 +380,4 @@ def test_another_chain_of_the_same_stages_by_overrides_leaves_the_default_chain_
     assert capsys.readouterr().out.strip() == "one_pair"
     with pytest.raises(SystemExit):
         record.main(["status", "--conf", str(path), "--set", "run_rot=runs/x"])
-    assert "--set 'run_rot=runs/x': must be <key>=<value> with a key of record.yaml" in capsys.readouterr().err
+    assert "--set 'run_rot=runs/x': must be <key>=<value> with a top-level key of record.yaml" in capsys.readouterr().err
