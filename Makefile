@@ -99,8 +99,9 @@ record-status:  ## where the record chain stands: episodes generated, each seed'
 	$(PY) scripts/record.py status $(RECORD_SET_ARGS)
 
 record-evaluate:  ## the record pair (each seed's last stage) on the 102 held-out designs -> reports/<publish_as>/102, then published as models/<publish_as> (record_pair; commit it)
-	$(MAKE) reference-evaluate "CKPT=[$$($(PY) scripts/record.py members $(RECORD_SET_ARGS))]" REF=reports/$$($(PY) scripts/record.py publish-name $(RECORD_SET_ARGS))
-	$(MAKE) publish "CKPT=[$$($(PY) scripts/record.py members $(RECORD_SET_ARGS))]" NAME=$$($(PY) scripts/record.py publish-name $(RECORD_SET_ARGS)) REPORT=reports/$$($(PY) scripts/record.py publish-name $(RECORD_SET_ARGS))/102
+	members=$$($(PY) scripts/record.py members $(RECORD_SET_ARGS)) && name=$$($(PY) scripts/record.py publish-name $(RECORD_SET_ARGS)) && \
+	$(MAKE) reference-evaluate "CKPT=[$$members]" REF=reports/$$name && \
+	$(MAKE) publish "CKPT=[$$members]" NAME=$$name REPORT=reports/$$name/102
 
 compare:  ## design-by-design comparison of reports against the first (REPORTS=a,b[,c]; LABELS=x,y[,z]; SIZES=n1,n2,..: a scaling fit; reports/compare/)
 	$(PY) -m learn.compare 'reports=[$(REPORTS)]' $(if $(LABELS),'labels=[$(LABELS)]') $(if $(SIZES),'sizes=[$(SIZES)]') out_dir=$(or $(CMP),reports/compare)
