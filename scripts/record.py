@@ -184,7 +184,12 @@ def kept_dir(cfg, seed: int, stage) -> Path | None:
 
 def stage_label(cfg, seed: int, stage) -> str:
     """A seed's stage as the repository names what it keeps of it: <run_root's name>_s<seed>_<stage> (record_s0_ft2)."""
-    return f"{Path(str(cfg.run_root)).name}_s{seed}_{stage.name}"
+    return f"{chain_name(cfg)}_s{seed}_{stage.name}"
+
+
+def chain_name(cfg) -> str:
+    """What a chain's keeps, parks and logs are named after: its run_root's last part (record)."""
+    return Path(str(cfg.run_root)).name
 
 
 def parked_path(cfg, seed: int, stage) -> Path | None:
@@ -457,7 +462,7 @@ def side_by_side(cfg, conf_path: Path, seeds: list[int], budget_min: float, log_
     log_dir.mkdir(parents=True, exist_ok=True)
     procs = []
     for seed in seeds:
-        log = log_dir / f"{Path(str(cfg.run_root)).name}_s{seed}.log"
+        log = log_dir / f"{chain_name(cfg)}_s{seed}.log"
         with open(log, "a") as out:
             procs.append((seed, log, subprocess.Popen(
                 [sys.executable, __file__, "train", "--seed", str(seed), "--budget-min", str(budget_min),
