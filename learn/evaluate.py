@@ -21,6 +21,7 @@ from learn.checks import integer_in, number_in
 from learn.dataset import design_paths, episode_paths, load_features
 from learn.features import EpisodeFeatures, rebuild_all_points
 from learn.model import Simulator
+from learn.rigid import shape_error
 from learn.roll import ONE_KIND, ROLLED, roll
 from learn.aot import AOT_BACKENDS, backend_checked
 from learn.rollout import (answer_unroll, compile_rollout, graph_inputs, input_floor, plain_inputs, reference,
@@ -121,6 +122,8 @@ def design_statistics(designs: list[dict], flag_error_rel: float | None = None) 
         "n_compiled_departures": int(sum("compiled_gap_mm" in d for d in designs)),  # learn.evaluate.mark_departures
         "max_rel_error": with_groups([d["max_rel_error"] for d in designs], **groups),
         "mean_rel_error": with_groups([d["mean_rel_error"] for d in designs], **groups),
+        **({"shape_rel_error": with_groups([d["shape_rel_error"] for d in designs], **groups)}
+           if designs and all("shape_rel_error" in d for d in designs) else {}),  # reports since session 65
         "representation_floor": distribution([d["representation_floor"] for d in designs]),
         "input_floor": distribution([d["input_floor"] for d in designs]),
     }
@@ -325,6 +328,7 @@ def evaluate(cfg: DictConfig) -> dict:
         r = raw.welded() if weld else raw  # the answer measured; the check reads the blocks as predicted
         err = np.linalg.norm(r.local_points - f.fea_points, axis=-1)  # [F, P]
         floor = np.linalg.norm(reference(f).local_points - f.fea_points, axis=-1)
+        shape = shape_error(r.local_points.astype(np.float64), f.fea_points.astype(np.float64))  # [F]
         seen = input_floor(model, f)
         designs.append({
             "name": f.name, "family": f.family, "actuators": f.actuators, "design_size_mm": f.design_size,
@@ -333,6 +337,8 @@ def evaluate(cfg: DictConfig) -> dict:
             "max_rel_error_per_frame": (err.max(axis=1) / f.design_size).tolist(),
             "mean_rel_error_per_frame": (err.mean(axis=1) / f.design_size).tolist(),
             "fea_step_rel_per_frame": fea_steps(f).tolist(),
+            "shape_rel_error": float(shape.max() / f.design_size),
+            "shape_rel_error_per_frame": (shape / f.design_size).tolist(),
             "representation_floor": float(floor.max() / f.design_size),
             "input_floor": float(seen.max() / f.design_size),
             "fea_s": f.fea_seconds, "valid": verdict.valid, "validity": verdict.as_dict(),
@@ -410,7 +416,8 @@ def markdown(report: dict, with_designs: bool = True) -> str:
         f"| mean error / design size | {_pct(report['mean_rel_error']['median'])} | "
         f"{_pct(report['mean_rel_error']['p95'])} | {_pct(report['mean_rel_error']['worst'])} | |",
         *(f"| {label} | {_pct(report[key]['median'])} | {_pct(report[key]['p95'])} | {_pct(report[key]['worst'])} | |"
-          for key, label in (("representation_floor", "representation floor"), ("input_floor", "input floor (PCA)"))
+          for key, label in (("shape_rel_error", "shape error / design size (the answer moved rigidly onto the FEA's)"),
+                             ("representation_floor", "representation floor"), ("input_floor", "input floor (PCA)"))
           if key in report),
         "",
         f"rollout {report['rollout_ms_per_design']:.2f} ms/design ({report.get('rollout_backend', 'torchscript')}, "
@@ -455,11 +462,11 @@ def markdown(report: dict, with_designs: bool = True) -> str:
                                        ("max_rel_error_p95", "max error, p95"),
                                        ("fea_step_rel_median", "FEA step, median")))]
     if with_designs:
-        lines += ["", "| design | family | actuators | size mm | max err | mean err | floor | valid |",
-                  "|---|---|---|---|---|---|---|---|"]
+        lines += ["", "| design | family | actuators | size mm | max err | shape err | mean err | floor | valid |",
+                  "|---|---|---|---|---|---|---|---|---|"]
         for d in sorted(report["designs"], key=lambda d: d["max_rel_error"]):
             lines.append(f"| {d['name']} | {d['family']} | {d.get('actuators', '-')} | {d['design_size_mm']:.1f} | "
-                         f"{_pct(d['max_rel_error'])} | "
+                         f"{_pct(d['max_rel_error'])} | {_pct(d.get('shape_rel_error'))} | "
                          f"{_pct(d['mean_rel_error'])} | {_pct(d['representation_floor'])} | "
                          f"{'yes' if d['valid'] else 'NO: ' + '; '.join(d['validity']['reasons'])} |")
     return "\n".join(lines) + "\n"

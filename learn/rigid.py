@@ -2,7 +2,8 @@
 
 The best rotation of one point set onto another is Kabsch's: with both centred, H = sum_i s_i t_i^T = U S V^T and
 R = V diag(1, 1, det(V U^T)) U^T minimises sum_i |R s_i - t_i|^2 over proper rotations. Used by learn.diagnose to split
-a rollout's error per block into orientation, placement and shape.
+a rollout's error per block into orientation, placement and shape, and by learn.evaluate to take from a whole
+answer's error the part a rigid motion of the whole explains (shape_error).
 """
 from __future__ import annotations
 
@@ -39,3 +40,15 @@ def block_parts(predicted: np.ndarray, truth: np.ndarray, start: np.ndarray) -> 
             "turn_deg": rotation_angle_deg(best_rotation(start, truth)),
             "placement": np.linalg.norm(pc - tc, axis=-1)[..., 0],
             "shape": np.linalg.norm(predicted - fitted, axis=-1).max(-1)}
+
+
+def shape_error(predicted: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """[..., N, 3] a whole answer's predicted and true points -> [...] the largest distance left once the predicted
+    points are moved rigidly onto the true ones (the least-squares rotation and translation, Kabsch): the error of the
+    shape itself, apart from how the whole answer is turned and where it sits, which the max point error counts too.
+    The fit minimises the squared distances, not the largest, so this bounds the best rigid fit's largest distance
+    from above."""
+    R = best_rotation(predicted, truth)
+    pc, tc = predicted.mean(-2, keepdims=True), truth.mean(-2, keepdims=True)
+    fitted = (predicted - pc) @ np.swapaxes(R, -1, -2) + tc
+    return np.linalg.norm(fitted - truth, axis=-1).max(-1)

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from learn.rigid import best_rotation, block_parts, rotation_angle_deg
+from learn.rigid import best_rotation, block_parts, rotation_angle_deg, shape_error
 
 
 def rotation(axis, angle_deg: float) -> np.ndarray:
@@ -67,3 +67,16 @@ def test_a_beams_bend_is_its_turn_relative_to_its_start_joint(block):
     assert relative_turns(carried, truth, np.array([0]))[0][0, 0] == pytest.approx(0.0, abs=1e-5)
     short = frames(rotation([1.0, 0.0, 0.0], 20.0), np.eye(3))
     assert relative_turns(short, truth, np.array([0]))[0][0, 0] == pytest.approx(10.0, abs=1e-5)
+
+
+def test_shape_error_is_what_no_rigid_motion_of_the_whole_answer_explains(block):
+    """learn.evaluate's shape_rel_error: an answer that is the truth turned and moved has no shape error (however
+    large its point error); one swollen about its centroid keeps the swelling; frames broadcast."""
+    truth = np.stack([block, block @ rotation([0, 1, 1], 30.0).T])  # [F=2, N, 3]
+    moved = truth @ rotation([1.0, 0.2, 0.0], 12.0).T + np.array([5.0, -2.0, 1.0])
+    assert np.linalg.norm(moved - truth, axis=-1).max() > 1.0  # mm: the point error is not small
+    np.testing.assert_allclose(shape_error(moved, truth), [0.0, 0.0], atol=1e-9)
+    centre = truth.mean(-2, keepdims=True)
+    swollen = centre + 1.1 * (truth - centre)
+    expected = 0.1 * np.linalg.norm(truth - centre, axis=-1).max(-1)  # the fit of a swelling is the identity
+    np.testing.assert_allclose(shape_error(swollen, truth), expected, rtol=1e-9)

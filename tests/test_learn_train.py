@@ -248,6 +248,12 @@ def test_evaluate_writes_the_report(trained, tmp_path):
     assert sum(g["n"] for g in groups.values()) == on_disk["n_designs"]
     assert set(groups) == {d["actuators"] for d in on_disk["designs"]} <= {"all up", "all down", "all passive", "mixed"}
     assert len(on_disk["designs"][0]["max_rel_error_per_frame"]) == 11
+    shape = on_disk["shape_rel_error"]  # the error a rigid motion of the whole answer does not explain
+    assert shape["n"] == on_disk["n_designs"] and set(shape["per_family"]) == set(on_disk["max_rel_error"]["per_family"])
+    for d in on_disk["designs"]:
+        assert d["shape_rel_error"] == pytest.approx(max(d["shape_rel_error_per_frame"]))
+        assert 0.0 <= d["shape_rel_error_per_frame"][0] <= 1e-6 and len(d["shape_rel_error_per_frame"]) == 11
+    assert "shape error / design size" in (tmp_path / "report.md").read_text()
     frames = on_disk["by_frame"]  # per frame over the designs, against the FEA's own step
     errors = np.array([d["max_rel_error_per_frame"] for d in on_disk["designs"]])
     assert frames["max_rel_error_median"] == pytest.approx(np.median(errors, 0).tolist())
