@@ -67,6 +67,7 @@ def test_the_card_carries_the_figures_of_the_report_measured_with_exactly_its_me
     card = json.loads((again / publish.CARD).read_text())
     assert card["report"]["max_rel_error"]["p95"] == on_disk["max_rel_error"]["p95"]
     assert card["report"]["max_rel_error"]["per_family"] == on_disk["max_rel_error"]["per_family"]
+    assert card["report"]["shape_rel_error"]["median"] == on_disk["shape_rel_error"]["median"]  # the shape apart from the tilt
     assert card["report"]["n_designs"] == on_disk["n_designs"] and card["report"]["speedup"] == on_disk["speedup"]
     assert [m["sha256"] for m in card["members"]] == [publish.sha256(p) for p in paths]  # byte for byte the same
     kept = json.loads((again / card["report"]["file"]).read_text())  # the whole report, for learn.compare later
