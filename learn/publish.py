@@ -119,10 +119,11 @@ def report_entry(path: str | Path, report: dict, sources: list[str]) -> dict:
         raise ValueError(f"report={path}: measured with {measured}, not with checkpoints={sources}: a card carries "
                          "the figures of its own model only")
     out = {"source": str(path), "file": REPORT, **{k: report.get(k) for k in REPORT_FIGURES}}
-    for key in ("max_rel_error", "mean_rel_error", "shape_rel_error"):  # shape: reports since session 65
-        if key in report or key != "shape_rel_error":
-            dist = report.get(key) or {}
-            out[key] = {k: dist.get(k) for k in ("median", "p95", "worst", "n", "per_family", "per_actuators")}
+    for key in ("max_rel_error", "mean_rel_error", "shape_rel_error"):
+        if key == "shape_rel_error" and key not in report:
+            continue  # a report from before session 65
+        dist = report.get(key) or {}
+        out[key] = {k: dist.get(k) for k in ("median", "p95", "worst", "n", "per_family", "per_actuators")}
     return out
 
 
