@@ -83,9 +83,11 @@ def anatomy(model, first, f, starts: list[int]) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--checkpoint", required=True, help="a checkpoint, several joined by ',' (an ensemble), or models/<name>")
+    ap.add_argument("--checkpoint", required=True,
+                    help="a checkpoint, several joined by ',' (an ensemble), or models/<name>")
     ap.add_argument("--report", required=True, help="a make reference-evaluate directory (52/ and fresh/ inside)")
-    ap.add_argument("--worst", type=int, default=22, help="designs set apart as the tail (22: those over 1.6 %% for the ft2 pair)")
+    ap.add_argument("--worst", type=int, default=22,
+                    help="designs set apart as the tail (22: those over 1.6 %% for the ft2 pair)")
     ap.add_argument("--starts", default="0,3,6,8,9", help="FEA frames the rollouts 'from frame s' start from")
     ap.add_argument("--out", default=None, help="markdown file (default: <report>/tail_anatomy.md)")
     a = ap.parse_args()
