@@ -34,6 +34,7 @@ import torch  # noqa: E402
 from data_schema import atomic  # noqa: E402
 from learn import ensemble  # noqa: E402
 from learn.dataset import load_features  # noqa: E402
+from learn.diagnose import blocks  # noqa: E402
 from learn.features import JOINT_POINTS, rebuild_all_points  # noqa: E402
 from learn.graph import JOINT  # noqa: E402
 from learn.model import static_from  # noqa: E402
@@ -54,9 +55,9 @@ def ranked_designs(report_dir: Path) -> list[tuple[float, Path, str]]:
 
 
 def fixed_joint_points(f, points: np.ndarray) -> np.ndarray:
-    """[F, P, 3] -> [F, n, 3] the points of the design's fixed joint (rebuild_all_points order: joints first)."""
-    j, n = int(np.argmax(f.joint_bc[:, JOINT.bc.slice("fixed")][:, 0])), len(JOINT_POINTS)
-    return points[:, j * n:(j + 1) * n]
+    """[F, P, 3] -> [F, n, 3] the points of the design's fixed joint (learn.diagnose.blocks: joints first)."""
+    j = int(np.argmax(f.joint_bc[:, JOINT.bc.slice("fixed")][:, 0]))
+    return blocks(points, f.incidence.n_joints)[0][:, j]
 
 
 def anatomy(model, first, f, starts: list[int]) -> dict:
@@ -97,7 +98,12 @@ def main() -> None:
     first = ensemble.members_of(model)[0]
     starts = [int(s) for s in a.starts.split(",")]
     designs = ranked_designs(Path(a.report))
+    if not 1 <= a.worst < len(designs):
+        raise SystemExit(f"--worst {a.worst}: must be in [1, {len(designs) - 1}] (the report's {len(designs)} designs)")
     features = load_features([p for _, p, _ in designs])
+    frames = min(f.n_frames for f in features)
+    if any(not 0 <= s < frames for s in starts):
+        raise SystemExit(f"--starts {a.starts}: every frame must be in [0, {frames - 1}] (the episodes' frames)")
     with torch.inference_mode():
         rows = [{"name": p.name, "actuators": kind, **anatomy(model, first, f, starts)}
                 for (_, p, kind), f in zip(designs, features)]
